@@ -1,0 +1,33 @@
+# Every target runs inside the FEniCSx environment given by scripts/fenicsx, which builds a
+# Debian root on first use when the host has no DOLFINx >= 0.9 (FENICSX_SUITE=sid for 0.11).
+FENICSX ?= scripts/fenicsx
+NP ?= 2
+PYTEST ?= python3 -m pytest -p no:cacheprovider --timeout=1200
+PYTEST_ARGS ?=
+
+.PHONY: demo demos test test-serial test-mpi lint format bench env
+
+demo:  ## the main job: the hyperelastic demo, pictures in demos/output/
+	$(FENICSX) python3 demos/demo_hyperelastic_bar.py
+
+test: test-serial test-mpi  ## serial suite, then the suite under mpirun -n $(NP)
+
+test-serial:
+	$(FENICSX) $(PYTEST) -q $(PYTEST_ARGS) tests
+
+test-mpi:
+	$(FENICSX) mpirun -n $(NP) $(PYTEST) -q $(PYTEST_ARGS) tests
+
+lint:
+	$(FENICSX) ruff check .
+	$(FENICSX) ruff format --check .
+
+format:
+	$(FENICSX) ruff check --fix .
+	$(FENICSX) ruff format .
+
+bench:
+	for b in benchmarks/bench_*.py; do $(FENICSX) python3 $$b || exit 1; done
+
+env:  ## print the versions the environment provides
+	$(FENICSX) python3 -c "import dolfinx, numba, petsc4py, sys; print('python', sys.version.split()[0], 'dolfinx', dolfinx.__version__, 'numba', numba.__version__, 'petsc4py', petsc4py.__version__)"

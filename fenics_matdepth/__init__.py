@@ -1,0 +1,17 @@
+"""fenics_matdepth: material-depth penalty contact for FEniCSx (DOLFINx).
+
+Frictionless penalty contact and self-contact between nonlinearly elastic bodies, with the
+contact model of Hirota, Fisher & State (2003): every vertex carries its material depth
+(distance to the boundary in the reference configuration), interpolated linearly in each
+tetrahedron, and the penalty energy (eps/2) g^2 is integrated exactly over the polygons
+where boundary triangles cut tetrahedra.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from fenics_matdepth import contact, geometry, materials
+from fenics_matdepth.depth import material_depth
+
+__all__ = ["__version__", "contact", "geometry", "material_depth", "materials"]

@@ -1,0 +1,27 @@
+"""Shared pytest set-up: collective clean-up after each test, serial-only marker."""
+
+from __future__ import annotations
+
+import gc
+
+from mpi4py import MPI
+
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def _collective_cleanup():
+    """Collect garbage and wait for every rank: PETSc destructors are collective."""
+    yield
+    gc.collect()
+    MPI.COMM_WORLD.Barrier()
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip tests marked ``serial`` when running on more than one MPI process."""
+    if MPI.COMM_WORLD.size == 1:
+        return
+    skip = pytest.mark.skip(reason="serial test (runs in the serial pass of `make test`)")
+    for item in items:
+        if "serial" in item.keywords:
+            item.add_marker(skip)
