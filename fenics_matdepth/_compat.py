@@ -7,7 +7,96 @@ from __future__ import annotations
 
 import dolfinx
 
-__all__ = ["DOLFINX_VERSION"]
+__all__ = ["DOLFINX_VERSION", "solve_nonlinear"]
 
 #: (major, minor) of the DOLFINx in use.
 DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
+
+
+#: Newton defaults of :func:`solve_nonlinear`: full steps, direct solve with MUMPS (works in
+#: serial and in parallel), tight tolerances.
+_NEWTON_DEFAULTS: dict[str, object] = {
+    "snes_type": "newtonls",
+    "snes_linesearch_type": "basic",
+    "snes_atol": 1e-10,
+    "snes_rtol": 1e-10,
+    "snes_stol": 0.0,
+    "snes_max_it": 25,
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+}
+
+
+def solve_nonlinear(
+    F,
+    u,
+    bcs=(),
+    petsc_options: dict | None = None,
+    petsc_options_prefix: str = "fenics_matdepth_nonlinear_",
+) -> tuple[int, bool]:
+    """Solve ``F(u; v) = 0`` for ``u`` by Newton's method, on any supported DOLFINx.
+
+    DOLFINx >= 0.10: ``dolfinx.fem.petsc.NonlinearProblem`` (PETSc SNES) with ``petsc_options``
+    pushed under ``petsc_options_prefix``. DOLFINx 0.9: ``dolfinx.nls.petsc.NewtonSolver`` with
+    the residual convergence criterion; ``snes_atol``, ``snes_rtol`` and ``snes_max_it`` are
+    mapped onto it, ``ksp_*``/``pc_*``/``mat_*`` options go to its Krylov solver, other
+    ``snes_*`` options (line search, ...) have no 0.9 counterpart and are ignored.
+
+    Args:
+        F: UFL residual form (linear in the test function).
+        u: The unknown ``dolfinx.fem.Function``; holds the initial guess and, on return, the
+            solution.
+        bcs: Dirichlet boundary conditions.
+        petsc_options: PETSc options overriding the defaults (Newton with full steps, LU with
+            MUMPS, absolute and relative residual tolerances 1e-10, at most 25 iterations).
+        petsc_options_prefix: Options prefix of the PETSc objects (DOLFINx >= 0.10).
+
+    Returns:
+        ``(iterations, converged)``; ``converged`` is always True on return.
+
+    Raises:
+        RuntimeError: If Newton's method (or its linear solver) did not converge.
+    """
+    from petsc4py import PETSc
+
+    import dolfinx.fem.petsc
+
+    options = {**_NEWTON_DEFAULTS, **(petsc_options or {})}
+    bcs = list(bcs)
+    if DOLFINX_VERSION >= (0, 10):
+        problem = dolfinx.fem.petsc.NonlinearProblem(
+            F, u, petsc_options_prefix=petsc_options_prefix, bcs=bcs, petsc_options=options
+        )
+        problem.solve()
+        reason = problem.solver.getConvergedReason()
+        iterations = problem.solver.getIterationNumber()
+        if reason <= 0:
+            raise RuntimeError(
+                f"Newton (SNES) did not converge: reason {reason} after {iterations} iterations"
+            )
+        return iterations, True
+
+    import dolfinx.nls.petsc
+
+    problem = dolfinx.fem.petsc.NonlinearProblem(F, u, bcs=bcs)
+    solver = dolfinx.nls.petsc.NewtonSolver(u.function_space.mesh.comm, problem)
+    solver.convergence_criterion = "residual"
+    solver.atol = float(options["snes_atol"])
+    solver.rtol = float(options["snes_rtol"])
+    solver.max_it = int(options["snes_max_it"])
+    # Raise below with our own message, the same as on DOLFINx >= 0.10.
+    solver.error_on_nonconvergence = False
+    ksp = solver.krylov_solver
+    ksp.setOptionsPrefix(petsc_options_prefix)
+    petsc_opts = PETSc.Options()
+    ksp_keys = [k for k in options if k.split("_")[0] in ("ksp", "pc", "mat")]
+    for key in ksp_keys:
+        petsc_opts[f"{petsc_options_prefix}{key}"] = options[key]
+    ksp.setFromOptions()
+    for key in ksp_keys:
+        del petsc_opts[f"{petsc_options_prefix}{key}"]
+    iterations, converged = solver.solve(u)
+    if not converged:
+        raise RuntimeError(f"Newton did not converge after {iterations} iterations")
+    return int(iterations), True
