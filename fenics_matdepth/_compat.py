@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dolfinx
 
-__all__ = ["DOLFINX_VERSION", "solve_nonlinear"]
+__all__ = ["DOLFINX_VERSION", "gmsh_model_to_mesh", "solve_nonlinear"]
 
 #: (major, minor) of the DOLFINx in use.
 DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
@@ -100,3 +100,29 @@ def solve_nonlinear(
     if not converged:
         raise RuntimeError(f"Newton did not converge after {iterations} iterations")
     return int(iterations), True
+
+
+def gmsh_model_to_mesh(model, comm, rank: int = 0, gdim: int = 3):
+    """Convert a gmsh model to a DOLFINx mesh on any supported DOLFINx.
+
+    DOLFINx 0.9 has ``dolfinx.io.gmshio.model_to_mesh`` returning a plain tuple; 0.10+ has
+    ``dolfinx.io.gmsh.model_to_mesh`` returning a named tuple with more fields.
+
+    Args:
+        model: The gmsh model (``gmsh.model``), meshed on ``rank``.
+        comm: MPI communicator of the mesh.
+        rank: Rank holding the gmsh model.
+        gdim: Geometric dimension.
+
+    Returns:
+        ``(mesh, cell_tags, facet_tags)``.
+    """
+    if DOLFINX_VERSION >= (0, 10):
+        from dolfinx.io import gmsh as _gmsh_io
+
+        data = _gmsh_io.model_to_mesh(model, comm, rank, gdim=gdim)
+        return data.mesh, data.cell_tags, data.facet_tags
+    from dolfinx.io import gmshio as _gmsh_io
+
+    mesh, cell_tags, facet_tags = _gmsh_io.model_to_mesh(model, comm, rank, gdim=gdim)[:3]
+    return mesh, cell_tags, facet_tags
