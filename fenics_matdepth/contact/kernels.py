@@ -1,1 +1,721 @@
-"""Placeholder."""
+"""Numba pair kernels of the material-depth penalty contact energy, with exact derivatives.
+
+Two integrations of the same penalty energy density ``(eps/2) g^2`` (``g`` = material depth,
+P1-interpolated in the current tetrahedron):
+
+* area integration (the paper's method), one (boundary triangle T, tetrahedron K) pair:
+  ``E = (eps/2) int_{T cap K} g_K^2 dA = eps * A_T * Phi(Lam)``, with ``A_T`` the current area of
+  T, ``Lam[i, j] = lambda_j(x_i)`` the barycentric coordinates of the triangle vertices in K and
+  ``Phi = int_P (G . mu)^2 dxi`` over the clipped polygon P of the parameter simplex
+  (``G = Lam @ d``). 21 dofs: triangle vertices 0..2 then tetrahedron vertices 0..3, xyz
+  interleaved.
+* point collocation (baseline), one (boundary vertex a, tetrahedron K) pair:
+  ``E = (eps/2) W_a g_K(x_a)^2`` if ``x_a`` is in K (all barycentrics >= 0), else 0. 15 dofs.
+
+Gradients and Hessians are the exact derivatives of these per-pair energies (including the
+motion of polygon edges that lie on tetrahedron faces); see ``docs/kernels.md`` for the
+derivation: ``Phi`` is differentiated with respect to the 12 numbers ``Lam`` through the
+polygon vertices (each the meeting point of two lines whose coefficients are columns of
+``Lam``), then the chain rule through ``Lam(x)`` and ``A_T(x)`` uses the closed forms
+``d lambda_j / d y = grad lambda_j`` and ``d lambda_j / d X_k = -lambda_k grad lambda_j``.
+
+Units: coordinates in length, depths in length, penalty in pressure / length, energies in
+energy; gradients in energy / length, Hessians in energy / length^2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from fenics_matdepth._constants import FLOAT, INDEX
+from fenics_matdepth.geometry.clip import (
+    MAX_POLYGON_VERTICES,
+    _barycentric_rows,
+    _clip,
+    _intersect_pairs,
+    _tet_gradients,
+    _triangle_area2,
+)
+
+__all__ = ["collocation_energy", "pair_energy"]
+
+_NV = MAX_POLYGON_VERTICES
+
+
+@njit(cache=True)
+def _area_work():
+    """Scratch arrays of one area-integration kernel call (allocated once per driver call)."""
+    return (
+        np.empty((4, 3), dtype=FLOAT),  # 0 grads: barycentric gradients of the tetrahedron
+        np.empty((3, 4), dtype=FLOAT),  # 1 lam
+        np.empty((2, _NV, 3), dtype=FLOAT),  # 2 mu (clipper buffers)
+        np.empty((2, _NV, 2), dtype=np.int64),  # 3 vertex labels
+        np.empty((2, _NV), dtype=np.int64),  # 4 edge labels
+        np.empty((_NV, 3, 12), dtype=FLOAT),  # 5 d mu_k / d Lam
+        np.empty((_NV, 3), dtype=FLOAT),  # 6 d Phi / d mu_k
+        np.empty(12, dtype=FLOAT),  # 7 d Phi / d Lam
+        np.empty((12, 12), dtype=FLOAT),  # 8 d2 Phi / d Lam2
+        np.empty((9, 12), dtype=FLOAT),  # 9 edge Jacobian
+        np.empty((9, 9), dtype=FLOAT),  # 10 edge Hessian
+        np.empty((9, 12), dtype=FLOAT),  # 11 edge Hessian x Jacobian
+        np.empty((9, 9), dtype=FLOAT),  # 12 T: Hessian of Phi w.r.t. triangle vertices
+        np.empty((9, 21), dtype=FLOAT),  # 13 V: half-contracted Hessian
+        np.empty((12, 9), dtype=FLOAT),  # 14 U
+        np.empty(21, dtype=FLOAT),  # 15 d Phi / d x
+        np.empty(9, dtype=FLOAT),  # 16 d A / d x
+        np.empty((9, 9), dtype=FLOAT),  # 17 d2 A / d x2
+        np.empty((3, 3), dtype=FLOAT),  # 18 W[i] = sum_j dPhi/dLam_ij grad lambda_j
+    )
+
+
+@njit(inline="always")
+def _line(lam, label, r):
+    """Component r of the homogeneous coefficient vector of line ``label`` (0..6)."""
+    if label < 3:
+        return 1.0 if r == label else 0.0
+    return lam[r, label - 3]
+
+
+@njit(inline="always")
+def _vertex_jacobian(lam, mu_k, la, lb, jac):
+    """``jac = d mu / d Lam`` (3, 12) for the vertex on lines la, lb; returns ``s = sum(m)``."""
+    ca0 = _line(lam, la, 0)
+    ca1 = _line(lam, la, 1)
+    ca2 = _line(lam, la, 2)
+    cb0 = _line(lam, lb, 0)
+    cb1 = _line(lam, lb, 1)
+    cb2 = _line(lam, lb, 2)
+    s = (ca1 * cb2 - ca2 * cb1) + (ca2 * cb0 - ca0 * cb2) + (ca0 * cb1 - ca1 * cb0)
+    for r in range(3):
+        for c in range(12):
+            jac[r, c] = 0.0
+    inv = 1.0 / s
+    for i in range(3):
+        # d m / d c_a[i] = e_i x c_b,  d m / d c_b[i] = c_a x e_i
+        if la >= 3:
+            if i == 0:
+                d0, d1, d2 = 0.0, -cb2, cb1
+            elif i == 1:
+                d0, d1, d2 = cb2, 0.0, -cb0
+            else:
+                d0, d1, d2 = -cb1, cb0, 0.0
+            sd = d0 + d1 + d2
+            col = 4 * i + la - 3
+            jac[0, col] = (d0 - mu_k[0] * sd) * inv
+            jac[1, col] = (d1 - mu_k[1] * sd) * inv
+            jac[2, col] = (d2 - mu_k[2] * sd) * inv
+        if lb >= 3:
+            if i == 0:
+                d0, d1, d2 = 0.0, ca2, -ca1
+            elif i == 1:
+                d0, d1, d2 = -ca2, 0.0, ca0
+            else:
+                d0, d1, d2 = ca1, -ca0, 0.0
+            sd = d0 + d1 + d2
+            col = 4 * i + lb - 3
+            jac[0, col] = (d0 - mu_k[0] * sd) * inv
+            jac[1, col] = (d1 - mu_k[1] * sd) * inv
+            jac[2, col] = (d2 - mu_k[2] * sd) * inv
+    return s
+
+
+@njit(inline="always")
+def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
+    """``hphi += sum_r w_r d2 mu_r / d Lam2`` for the vertex on lines la, lb."""
+    if la < 3 and lb < 3:
+        return
+    ca = np.empty(3, dtype=FLOAT)
+    cb = np.empty(3, dtype=FLOAT)
+    for r in range(3):
+        ca[r] = _line(lam, la, r)
+        cb[r] = _line(lam, lb, r)
+    wmu = w[0] * mu_k[0] + w[1] * mu_k[1] + w[2] * mu_k[2]
+    inv2 = 1.0 / (s * s)
+    # columns of d m / d c (up to 6 variables) and their Lam indices
+    dm = np.zeros((6, 3), dtype=FLOAT)
+    idx = np.full(6, -1, dtype=np.int64)
+    for i in range(3):
+        if la >= 3:
+            e = np.zeros(3, dtype=FLOAT)
+            e[i] = 1.0
+            dm[i, 0] = e[1] * cb[2] - e[2] * cb[1]
+            dm[i, 1] = e[2] * cb[0] - e[0] * cb[2]
+            dm[i, 2] = e[0] * cb[1] - e[1] * cb[0]
+            idx[i] = 4 * i + la - 3
+        if lb >= 3:
+            e = np.zeros(3, dtype=FLOAT)
+            e[i] = 1.0
+            dm[3 + i, 0] = ca[1] * e[2] - ca[2] * e[1]
+            dm[3 + i, 1] = ca[2] * e[0] - ca[0] * e[2]
+            dm[3 + i, 2] = ca[0] * e[1] - ca[1] * e[0]
+            idx[3 + i] = 4 * i + lb - 3
+    # d2 mu_r / dm_t dm_u = (2 mu_r - delta_rt - delta_ru) / s^2, contracted with w
+    for al in range(6):
+        if idx[al] < 0:
+            continue
+        for be in range(6):
+            if idx[be] < 0:
+                continue
+            acc = 0.0
+            for t in range(3):
+                for u in range(3):
+                    acc += dm[al, t] * (2.0 * wmu - w[t] - w[u]) * dm[be, u]
+            hphi[idx[al], idx[be]] += acc * inv2
+    if la >= 3 and lb >= 3:
+        # d2 m / dc_a[i] dc_b[i'] = e_i x e_i', contracted with v = (d mu / d m)^T w
+        v0 = (w[0] - wmu) / s
+        v1 = (w[1] - wmu) / s
+        v2 = (w[2] - wmu) / s
+        for i in range(3):
+            for i2 in range(3):
+                if i == i2:
+                    continue
+                # v . (e_i x e_i2) = levi-civita(i, i2, third) * v_third
+                t = 3 - i - i2
+                sign = 1.0 if (i2 - i) % 3 == 1 else -1.0
+                vt = v0 if t == 0 else (v1 if t == 1 else v2)
+                val = sign * vt
+                hphi[4 * i + la - 3, 4 * i2 + lb - 3] += val
+                hphi[4 * i2 + lb - 3, 4 * i + la - 3] += val
+
+
+@njit(cache=True)
+def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
+    """Area-integration energy of one (triangle, tetrahedron) pair.
+
+    Args:
+        xs: (3, 3) triangle vertices; xt: (4, 3) tetrahedron vertices (length).
+        dt: (4,) material depths of the tetrahedron vertices (length).
+        penalty: eps (pressure / length).
+        want_grad, want_hess: which derivatives to write.
+        work: tuple from `_area_work`.
+        grad: (21,) output (written if want_grad); hess: (21, 21) output (if want_hess).
+
+    Returns:
+        The pair energy (0.0, with zero outputs, for an empty intersection, a flat tetrahedron
+        or a zero-area triangle).
+    """
+    (grads, lam, mu, vlab, elab, jmu, wmu, gphi, hphi, je, hf, hje, tt, vv, uu, gx, ga, ha, ww) = (
+        work
+    )
+    if want_grad:
+        for c in range(21):
+            grad[c] = 0.0
+    if want_hess:
+        for c in range(21):
+            for c2 in range(21):
+                hess[c, c2] = 0.0
+    a2 = _triangle_area2(xs)
+    if a2 == 0.0:
+        return 0.0
+    if _tet_gradients(xt, grads) == 0.0:
+        return 0.0
+    _barycentric_rows(xs, xt, grads, lam)
+    n = _clip(lam, mu, vlab, elab)
+    if n < 3:
+        return 0.0
+    area = 0.5 * a2
+    g0 = lam[0, 0] * dt[0] + lam[0, 1] * dt[1] + lam[0, 2] * dt[2] + lam[0, 3] * dt[3]
+    g1 = lam[1, 0] * dt[0] + lam[1, 1] * dt[1] + lam[1, 2] * dt[2] + lam[1, 3] * dt[3]
+    g2 = lam[2, 0] * dt[0] + lam[2, 1] * dt[1] + lam[2, 2] * dt[2] + lam[2, 3] * dt[3]
+
+    # ---- Phi and its derivatives with respect to Lam (fan of signed triangles from mu = e_0)
+    phi = 0.0
+    wg0 = 0.0
+    wg1 = 0.0
+    wg2 = 0.0
+    if want_grad:
+        for k in range(n):
+            for r in range(3):
+                wmu[k, r] = 0.0
+            _vertex_jacobian(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], jmu[k])
+    if want_hess:
+        for c in range(12):
+            for c2 in range(12):
+                hphi[c, c2] = 0.0
+        # rows 6..8 of the edge Jacobian: d G_i / d Lam_ij = d_j
+        for r in range(3):
+            for c in range(12):
+                je[6 + r, c] = 0.0
+            for j in range(4):
+                je[6 + r, 4 * r + j] = dt[j]
+    for k in range(n):
+        k1 = k + 1 if k + 1 < n else 0
+        p0 = mu[0, k, 0]
+        p1 = mu[0, k, 1]
+        p2 = mu[0, k, 2]
+        q0 = mu[0, k1, 0]
+        q1 = mu[0, k1, 1]
+        q2 = mu[0, k1, 2]
+        dd = (p1 * q2 - p2 * q1) / 12.0
+        va = g0
+        vb = g0 * p0 + g1 * p1 + g2 * p2
+        vc = g0 * q0 + g1 * q1 + g2 * q2
+        qq = va * va + vb * vb + vc * vc + va * vb + vb * vc + vc * va
+        phi += dd * qq
+        if not want_grad:
+            continue
+        qa = 2.0 * va + vb + vc
+        qb = 2.0 * vb + va + vc
+        qc = 2.0 * vc + va + vb
+        # gradient of f = dd * qq over (p, q, G)
+        wmu[k, 0] += dd * qb * g0
+        wmu[k, 1] += qq * q2 / 12.0 + dd * qb * g1
+        wmu[k, 2] += -qq * q1 / 12.0 + dd * qb * g2
+        wmu[k1, 0] += dd * qc * g0
+        wmu[k1, 1] += -qq * p2 / 12.0 + dd * qc * g1
+        wmu[k1, 2] += qq * p1 / 12.0 + dd * qc * g2
+        wg0 += dd * (qa + qb * p0 + qc * q0)
+        wg1 += dd * (qb * p1 + qc * q1)
+        wg2 += dd * (qb * p2 + qc * q2)
+        if not want_hess:
+            continue
+        # Hessian of f over z = (p, q, G): Q hD + dD gQ^T + gQ dD^T + D (sum Qxy gx gy^T + ...)
+        gdd = (0.0, q2 / 12.0, -q1 / 12.0, 0.0, -p2 / 12.0, p1 / 12.0, 0.0, 0.0, 0.0)
+        gva = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0)
+        gvb = (g0, g1, g2, 0.0, 0.0, 0.0, p0, p1, p2)
+        gvc = (0.0, 0.0, 0.0, g0, g1, g2, q0, q1, q2)
+        for r in range(9):
+            gq_r = qa * gva[r] + qb * gvb[r] + qc * gvc[r]
+            for c in range(r, 9):
+                gq_c = qa * gva[c] + qb * gvb[c] + qc * gvc[c]
+                # qq has the Hessian I + 1 1^T in (va, vb, vc)
+                sa = gva[r] + gvb[r] + gvc[r]
+                sc = gva[c] + gvb[c] + gvc[c]
+                h2q = gva[r] * gva[c] + gvb[r] * gvb[c] + gvc[r] * gvc[c] + sa * sc
+                val = gdd[r] * gq_c + gq_r * gdd[c] + dd * h2q
+                hf[r, c] = val
+                hf[c, r] = val
+        # vb = G . p and vc = G . q are bilinear
+        for r in range(3):
+            hf[r, 6 + r] += dd * qb
+            hf[6 + r, r] += dd * qb
+            hf[3 + r, 6 + r] += dd * qc
+            hf[6 + r, 3 + r] += dd * qc
+        # dd is bilinear in (p1, p2, q1, q2)
+        hf[1, 5] += qq / 12.0
+        hf[5, 1] += qq / 12.0
+        hf[2, 4] -= qq / 12.0
+        hf[4, 2] -= qq / 12.0
+        for r in range(3):
+            for c in range(12):
+                je[r, c] = jmu[k, r, c]
+                je[3 + r, c] = jmu[k1, r, c]
+        for r in range(9):
+            for c in range(12):
+                acc = 0.0
+                for t in range(9):
+                    acc += hf[r, t] * je[t, c]
+                hje[r, c] = acc
+        for r in range(12):
+            for c in range(12):
+                acc = 0.0
+                for t in range(9):
+                    acc += je[t, r] * hje[t, c]
+                hphi[r, c] += acc
+
+    energy = penalty * area * phi
+    if not want_grad:
+        return energy
+
+    for c in range(12):
+        gphi[c] = 0.0
+    for k in range(n):
+        for c in range(12):
+            gphi[c] += (
+                jmu[k, 0, c] * wmu[k, 0] + jmu[k, 1, c] * wmu[k, 1] + jmu[k, 2, c] * wmu[k, 2]
+            )
+    for j in range(4):
+        gphi[j] += wg0 * dt[j]
+        gphi[4 + j] += wg1 * dt[j]
+        gphi[8 + j] += wg2 * dt[j]
+    if want_hess:
+        for k in range(n):
+            s = _vertex_jacobian(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], jmu[k])
+            _vertex_curvature(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], s, wmu[k], hphi)
+
+    # ---- chain rule through Lam(x): d Lam_ij / d x_i = grad_j, d Lam_ij / d X_k = -Lam_ik grad_j
+    for i in range(3):
+        for a in range(3):
+            acc = 0.0
+            for j in range(4):
+                acc += gphi[4 * i + j] * grads[j, a]
+            ww[i, a] = acc
+    for i in range(3):
+        for a in range(3):
+            gx[3 * i + a] = ww[i, a]
+    for k in range(4):
+        for a in range(3):
+            gx[9 + 3 * k + a] = -(
+                lam[0, k] * ww[0, a] + lam[1, k] * ww[1, a] + lam[2, k] * ww[2, a]
+            )
+
+    # ---- area and its derivatives: dn/dx_i [delta] = E_i x delta, E_i = x_{i-1} - x_{i+1}
+    nx = (xs[1, 1] - xs[0, 1]) * (xs[2, 2] - xs[0, 2]) - (xs[1, 2] - xs[0, 2]) * (
+        xs[2, 1] - xs[0, 1]
+    )
+    ny = (xs[1, 2] - xs[0, 2]) * (xs[2, 0] - xs[0, 0]) - (xs[1, 0] - xs[0, 0]) * (
+        xs[2, 2] - xs[0, 2]
+    )
+    nz = (xs[1, 0] - xs[0, 0]) * (xs[2, 1] - xs[0, 1]) - (xs[1, 1] - xs[0, 1]) * (
+        xs[2, 0] - xs[0, 0]
+    )
+    inv_n = 1.0 / a2
+    dn = np.empty((9, 3), dtype=FLOAT)  # dn[3 i + a] = E_i x e_a
+    for i in range(3):
+        im = (i + 2) % 3
+        ip = (i + 1) % 3
+        ex = xs[im, 0] - xs[ip, 0]
+        ey = xs[im, 1] - xs[ip, 1]
+        ez = xs[im, 2] - xs[ip, 2]
+        dn[3 * i + 0, 0] = 0.0
+        dn[3 * i + 0, 1] = ez
+        dn[3 * i + 0, 2] = -ey
+        dn[3 * i + 1, 0] = -ez
+        dn[3 * i + 1, 1] = 0.0
+        dn[3 * i + 1, 2] = ex
+        dn[3 * i + 2, 0] = ey
+        dn[3 * i + 2, 1] = -ex
+        dn[3 * i + 2, 2] = 0.0
+    for r in range(9):
+        ga[r] = 0.5 * (nx * dn[r, 0] + ny * dn[r, 1] + nz * dn[r, 2]) * inv_n
+
+    for c in range(9):
+        grad[c] = penalty * (phi * ga[c] + area * gx[c])
+    for c in range(9, 21):
+        grad[c] = penalty * area * gx[c]
+    if not want_hess:
+        return energy
+
+    # d2 A: (dn . dn + n . d2n) / (2|n|) - (n . dn)^2 / (2 |n|^3)
+    for r in range(9):
+        i = r // 3
+        a = r % 3
+        for c in range(9):
+            m = c // 3
+            b = c % 3
+            val = dn[r, 0] * dn[c, 0] + dn[r, 1] * dn[c, 1] + dn[r, 2] * dn[c, 2]
+            if m != i:
+                # d E_i / d x_m = +1 if m = i - 1, -1 if m = i + 1; n . (e_b x e_a)
+                sgn = 1.0 if m == (i + 2) % 3 else -1.0
+                if a != b:
+                    t = 3 - a - b
+                    lc = 1.0 if (a - b) % 3 == 1 else -1.0  # levi-civita(b, a, t)
+                    nt = nx if t == 0 else (ny if t == 1 else nz)
+                    val += sgn * lc * nt
+            ha[r, c] = 0.5 * val * inv_n - 2.0 * ga[r] * ga[c] * inv_n
+
+    # J^T H_Lam J with J_(ij) = p_i (x) grad_j, p_i = (e_i, -Lam[i, :]) over the 7 vertices
+    for r in range(12):
+        for i2 in range(3):
+            for b in range(3):
+                acc = 0.0
+                for j2 in range(4):
+                    acc += hphi[r, 4 * i2 + j2] * grads[j2, b]
+                uu[r, 3 * i2 + b] = acc
+    for i in range(3):
+        for a in range(3):
+            for c in range(9):
+                acc = 0.0
+                for j in range(4):
+                    acc += grads[j, a] * uu[4 * i + j, c]
+                tt[3 * i + a, c] = acc
+    for r in range(9):
+        for be in range(7):
+            for b in range(3):
+                if be < 3:
+                    val = tt[r, 3 * be + b]
+                else:
+                    k = be - 3
+                    val = -(
+                        lam[0, k] * tt[r, b] + lam[1, k] * tt[r, 3 + b] + lam[2, k] * tt[r, 6 + b]
+                    )
+                vv[r, 3 * be + b] = val
+    for al in range(7):
+        for a in range(3):
+            for c in range(21):
+                if al < 3:
+                    val = vv[3 * al + a, c]
+                else:
+                    k = al - 3
+                    val = -(
+                        lam[0, k] * vv[a, c] + lam[1, k] * vv[3 + a, c] + lam[2, k] * vv[6 + a, c]
+                    )
+                hess[3 * al + a, c] = val
+    # sum_ij dPhi/dLam_ij d2 Lam_ij: triangle-tet and tet-tet blocks
+    for i in range(3):
+        for k in range(4):
+            for a in range(3):
+                for b in range(3):
+                    val = -grads[k, a] * ww[i, b]
+                    hess[3 * i + a, 9 + 3 * k + b] += val
+                    hess[9 + 3 * k + b, 3 * i + a] += val
+    for k in range(4):
+        for l in range(4):
+            for a in range(3):
+                for b in range(3):
+                    acc = 0.0
+                    for i in range(3):
+                        acc += (
+                            lam[i, l] * ww[i, a] * grads[k, b] + lam[i, k] * grads[l, a] * ww[i, b]
+                        )
+                    hess[9 + 3 * k + a, 9 + 3 * l + b] += acc
+    # E = eps (A Phi): product rule
+    for r in range(21):
+        for c in range(21):
+            val = area * hess[r, c]
+            if r < 9:
+                val += ga[r] * gx[c]
+                if c < 9:
+                    val += phi * ha[r, c]
+            if c < 9:
+                val += gx[r] * ga[c]
+            hess[r, c] = penalty * val
+    return energy
+
+
+@njit(cache=True)
+def _area_pair_one(xs, xt, dt, penalty, want_grad, want_hess, grad, hess):
+    """One pair (for `pair_energy` and tests)."""
+    work = _area_work()
+    return _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess)
+
+
+@njit(cache=True)
+def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
+    """Area-integration energies of many (triangle, tetrahedron) pairs.
+
+    Args:
+        x: (nv, 3) current vertex coordinates (length).
+        depth: (nv,) material depth per vertex (length).
+        tri: (nt, 3) boundary triangles (vertex indices).
+        tet: (nk, 4) tetrahedra (vertex indices).
+        pair_tri, pair_tet: (np,) candidate pairs (indices into tri and tet).
+        penalty: eps (pressure / length).
+        want_grad, want_hess: whether to compute gradients and Hessians.
+
+    Returns:
+        ``energy (np,)``, ``grad (np, 21)`` (``(0, 21)`` unless want_grad) and
+        ``hess (np, 21, 21)`` (``(0, 21, 21)`` unless want_hess); dofs of pair p are the
+        vertices ``[tri[pair_tri[p]], tet[pair_tet[p]]]``, xyz interleaved.
+    """
+    npairs = pair_tri.shape[0]
+    energy = np.zeros(npairs, dtype=FLOAT)
+    grad = np.zeros((npairs if want_grad else 0, 21), dtype=FLOAT)
+    hess = np.zeros((npairs if want_hess else 0, 21, 21), dtype=FLOAT)
+    g1 = np.empty(21, dtype=FLOAT)
+    h1 = np.empty((21, 21), dtype=FLOAT)
+    work = _area_work()
+    xs = np.empty((3, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    for p in range(npairs):
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        for a in range(4):
+            v = tet[pair_tet[p], a]
+            dt[a] = depth[v]
+            for r in range(3):
+                xt[a, r] = x[v, r]
+        gout = grad[p] if want_grad else g1
+        hout = hess[p] if want_hess else h1
+        energy[p] = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, gout, hout)
+    return energy, grad, hess
+
+
+@njit(cache=True)
+def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
+    """Like `_area_pairs`, but returns only the intersecting pairs (saves memory).
+
+    Returns:
+        ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs
+        (shapes ``(na,)``, ``(na, 21)``, ``(na, 21, 21)``; empty first axis when not wanted).
+    """
+    flags = np.empty(pair_tri.shape[0], dtype=np.bool_)
+    na = _intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
+    active = np.empty(na, dtype=INDEX)
+    m = 0
+    for p in range(pair_tri.shape[0]):
+        if flags[p]:
+            active[m] = p
+            m += 1
+    energy, grad, hess = _area_pairs(
+        x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, want_grad, want_hess
+    )
+    return active, energy, grad, hess
+
+
+@njit(cache=True)
+def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, grad, hess):
+    """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).
+
+    ``E = (eps/2) W g^2`` with ``g = sum_j lambda_j(x_a) d_j`` when every ``lambda_j >= 0``.
+    """
+    if want_grad:
+        for c in range(15):
+            grad[c] = 0.0
+    if want_hess:
+        for c in range(15):
+            for c2 in range(15):
+                hess[c, c2] = 0.0
+    if _tet_gradients(xt, grads) == 0.0:
+        return 0.0
+    lam = np.empty(4, dtype=FLOAT)
+    s = 0.0
+    for j in range(1, 4):
+        v = (
+            grads[j, 0] * (xa[0] - xt[0, 0])
+            + grads[j, 1] * (xa[1] - xt[0, 1])
+            + grads[j, 2] * (xa[2] - xt[0, 2])
+        )
+        lam[j] = v
+        s += v
+    lam[0] = 1.0 - s
+    if lam[0] < 0.0 or lam[1] < 0.0 or lam[2] < 0.0 or lam[3] < 0.0:
+        return 0.0
+    g = lam[0] * dt[0] + lam[1] * dt[1] + lam[2] * dt[2] + lam[3] * dt[3]
+    c0 = penalty * weight
+    energy = 0.5 * c0 * g * g
+    if not want_grad:
+        return energy
+    # grad g (constant in K); d g / d X_k = -lambda_k grad g
+    gg = np.zeros(3, dtype=FLOAT)
+    for j in range(4):
+        for a in range(3):
+            gg[a] += dt[j] * grads[j, a]
+    dg = np.empty(15, dtype=FLOAT)
+    for a in range(3):
+        dg[a] = gg[a]
+        for k in range(4):
+            dg[3 + 3 * k + a] = -lam[k] * gg[a]
+    for c in range(15):
+        grad[c] = c0 * g * dg[c]
+    if not want_hess:
+        return energy
+    for r in range(15):
+        for c in range(15):
+            hess[r, c] = c0 * dg[r] * dg[c]
+    # g * d2 g: node-tet block -grad_k[a] gg[b]; tet-tet block
+    # lambda_l gg[a] grad_k[b] + lambda_k grad_l[a] gg[b]
+    for k in range(4):
+        for a in range(3):
+            for b in range(3):
+                val = -c0 * g * grads[k, a] * gg[b]
+                hess[a, 3 + 3 * k + b] += val
+                hess[3 + 3 * k + b, a] += val
+        for l in range(4):
+            for a in range(3):
+                for b in range(3):
+                    val = lam[l] * gg[a] * grads[k, b] + lam[k] * grads[l, a] * gg[b]
+                    hess[3 + 3 * k + a, 3 + 3 * l + b] += c0 * g * val
+    return energy
+
+
+@njit(cache=True)
+def _collocation_pair_one(xa, xt, dt, weight, penalty, want_grad, want_hess, grad, hess):
+    """One pair (for `collocation_energy` and tests)."""
+    grads = np.empty((4, 3), dtype=FLOAT)
+    return _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, grad, hess)
+
+
+@njit(cache=True)
+def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want_grad, want_hess):
+    """Point-collocation energies of many (boundary vertex, tetrahedron) pairs.
+
+    Args:
+        x: (nv, 3) current vertex coordinates (length).
+        depth: (nv,) material depth per vertex (length).
+        weight: (nv,) collocation weight W_a per vertex (area, length^2; one third of the area of
+            the boundary triangles around a).
+        tet: (nk, 4) tetrahedra (vertex indices).
+        pair_node, pair_tet: (np,) candidate pairs (vertex index, tetrahedron index).
+        penalty: eps (pressure / length).
+        want_grad, want_hess: whether to compute gradients and Hessians.
+
+    Returns:
+        ``energy (np,)``, ``grad (np, 15)``, ``hess (np, 15, 15)`` (first axis 0 when not
+        wanted); dofs of pair p are the vertices ``[pair_node[p], tet[pair_tet[p]]]``.
+    """
+    npairs = pair_node.shape[0]
+    energy = np.zeros(npairs, dtype=FLOAT)
+    grad = np.zeros((npairs if want_grad else 0, 15), dtype=FLOAT)
+    hess = np.zeros((npairs if want_hess else 0, 15, 15), dtype=FLOAT)
+    g1 = np.empty(15, dtype=FLOAT)
+    h1 = np.empty((15, 15), dtype=FLOAT)
+    grads = np.empty((4, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    xa = np.empty(3, dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    for p in range(npairs):
+        node = pair_node[p]
+        for r in range(3):
+            xa[r] = x[node, r]
+        for a in range(4):
+            v = tet[pair_tet[p], a]
+            dt[a] = depth[v]
+            for r in range(3):
+                xt[a, r] = x[v, r]
+        gout = grad[p] if want_grad else g1
+        hout = hess[p] if want_hess else h1
+        energy[p] = _collocation_pair(
+            xa, xt, dt, weight[node], penalty, want_grad, want_hess, grads, gout, hout
+        )
+    return energy, grad, hess
+
+
+def pair_energy(
+    x_tri: np.ndarray, x_tet: np.ndarray, depth_tet: np.ndarray, penalty: float
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Area-integrated penalty energy of one (triangle, tetrahedron) pair, exact derivatives.
+
+    Args:
+        x_tri: (3, 3) current triangle vertex coordinates (length).
+        x_tet: (4, 3) current tetrahedron vertex coordinates (length).
+        depth_tet: (4,) material depths of the tetrahedron vertices (length).
+        penalty: eps (pressure / length).
+
+    Returns:
+        ``(E, grad, hess)``: energy ``(eps/2) int_{T cap K} g^2 dA`` (energy), gradient (21,)
+        and Hessian (21, 21) over the triangle then tetrahedron vertex coordinates, xyz
+        interleaved.
+    """
+    xs = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
+    xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
+    dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
+    grad = np.zeros(21, dtype=FLOAT)
+    hess = np.zeros((21, 21), dtype=FLOAT)
+    energy = _area_pair_one(xs, xt, dt, float(penalty), True, True, grad, hess)
+    return float(energy), grad, hess
+
+
+def collocation_energy(
+    x_node: np.ndarray,
+    x_tet: np.ndarray,
+    depth_tet: np.ndarray,
+    weight: float,
+    penalty: float,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Point-collocation penalty energy of one (vertex, tetrahedron) pair, exact derivatives.
+
+    Args:
+        x_node: (3,) current vertex coordinates (length).
+        x_tet: (4, 3) current tetrahedron vertex coordinates (length).
+        depth_tet: (4,) material depths of the tetrahedron vertices (length).
+        weight: W_a, the area the vertex represents (length^2).
+        penalty: eps (pressure / length).
+
+    Returns:
+        ``(E, grad, hess)``: ``(eps/2) W g(x_a)^2`` if the vertex is in the tetrahedron, else 0;
+        gradient (15,) and Hessian (15, 15) over the vertex then tetrahedron coordinates.
+    """
+    xa = np.ascontiguousarray(x_node, dtype=FLOAT).reshape(3)
+    xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
+    dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
+    grad = np.zeros(15, dtype=FLOAT)
+    hess = np.zeros((15, 15), dtype=FLOAT)
+    energy = _collocation_pair_one(
+        xa, xt, dt, float(weight), float(penalty), True, True, grad, hess
+    )
+    return float(energy), grad, hess

@@ -1,5 +1,315 @@
-"""Placeholder."""
+"""Triangle-tetrahedron intersection, computed in the triangle's barycentric parameter domain.
+
+A point of the triangle with barycentric coordinates ``mu`` (``mu_i >= 0``, ``sum(mu) = 1``) has
+barycentric coordinates ``L_j(mu) = sum_i mu_i Lam[i, j]`` in the tetrahedron, where
+``Lam[i, j] = lambda_j(x_i)`` is the j-th barycentric coordinate of triangle vertex i. The
+intersection is therefore the convex polygon cut from the parameter simplex by the four
+half-planes ``L_j(mu) >= 0``: at most 7 vertices, each the intersection of two of 7 lines
+(``mu_i = 0``, i = 0..2, labelled 0..2; ``L_j = 0``, j = 0..3, labelled 3..6). In homogeneous
+coordinates every line is a 3-vector ``c`` (``c . mu = 0``): ``e_i`` for a triangle edge and
+the column ``Lam[:, j]`` for a tetrahedron face, and the vertex where lines a and b meet is
+``mu = m / sum(m)`` with ``m = c_a x c_b``. The clipper records these two labels per vertex so
+that the contact kernels (`fenics_matdepth.contact.kernels`) can differentiate the polygon
+exactly.
+
+Robustness: the clipper works on barycentric values only (dimensionless, O(1)), treats
+``|L| <= CLIP_TOL`` as "on the line" (kept, no new vertex), and creates a vertex only where an
+edge strictly crosses the band, so no division by a vanishing difference occurs and the
+polygon (hence its area) moves by O(CLIP_TOL) at a degenerate configuration. Flat tetrahedra
+(``|6 V| <= TET_VOLUME_RTOL * h^3``, h the longest edge) and zero-area triangles give an empty
+intersection.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from fenics_matdepth._constants import FLOAT
+
+__all__ = [
+    "CLIP_TOL",
+    "MAX_POLYGON_VERTICES",
+    "TET_VOLUME_RTOL",
+    "TRI_AREA_RTOL",
+    "intersection_polygon",
+]
+
+#: Band half-width (dimensionless, barycentric units) inside which a polygon vertex counts as
+#: lying on a tetrahedron face: an area error of at most O(CLIP_TOL * triangle area).
+CLIP_TOL = 1e-13
+#: A tetrahedron with ``|6 V| <= TET_VOLUME_RTOL * h**3`` (h = longest edge) is flat: its
+#: barycentric coordinates are not defined and it contributes nothing.
+TET_VOLUME_RTOL = 1e-12
+#: A triangle with ``2 A <= TRI_AREA_RTOL * h**2`` (h = longest edge) has zero area: it
+#: contributes nothing (and its normal, hence the area gradient, is undefined).
+TRI_AREA_RTOL = 1e-14
+#: Triangle (3) plus at most one new vertex per tetrahedron face (4).
+MAX_POLYGON_VERTICES = 8
 
 
-def intersection_polygon(x_tri, x_tet):
-    raise NotImplementedError
+@njit(inline="always")
+def _tet_gradients(x_tet, grads):
+    """Barycentric gradients of a tetrahedron.
+
+    Args:
+        x_tet: (4, 3) vertex coordinates (length).
+        grads: (4, 3) output, ``grads[j] = grad lambda_j`` (1 / length).
+
+    Returns:
+        6 x signed volume (length^3); 0.0 for a flat tetrahedron (grads then untouched).
+    """
+    e1x = x_tet[1, 0] - x_tet[0, 0]
+    e1y = x_tet[1, 1] - x_tet[0, 1]
+    e1z = x_tet[1, 2] - x_tet[0, 2]
+    e2x = x_tet[2, 0] - x_tet[0, 0]
+    e2y = x_tet[2, 1] - x_tet[0, 1]
+    e2z = x_tet[2, 2] - x_tet[0, 2]
+    e3x = x_tet[3, 0] - x_tet[0, 0]
+    e3y = x_tet[3, 1] - x_tet[0, 1]
+    e3z = x_tet[3, 2] - x_tet[0, 2]
+    # cross products e2 x e3, e3 x e1, e1 x e2 are det * (rows of the inverse edge matrix)
+    c1x = e2y * e3z - e2z * e3y
+    c1y = e2z * e3x - e2x * e3z
+    c1z = e2x * e3y - e2y * e3x
+    c2x = e3y * e1z - e3z * e1y
+    c2y = e3z * e1x - e3x * e1z
+    c2z = e3x * e1y - e3y * e1x
+    c3x = e1y * e2z - e1z * e2y
+    c3y = e1z * e2x - e1x * e2z
+    c3z = e1x * e2y - e1y * e2x
+    det = e1x * c1x + e1y * c1y + e1z * c1z
+    h2 = 0.0
+    for a in range(4):
+        for b in range(a + 1, 4):
+            dx = x_tet[a, 0] - x_tet[b, 0]
+            dy = x_tet[a, 1] - x_tet[b, 1]
+            dz = x_tet[a, 2] - x_tet[b, 2]
+            h2 = max(h2, dx * dx + dy * dy + dz * dz)
+    if not (abs(det) > TET_VOLUME_RTOL * h2 * np.sqrt(h2)):
+        return 0.0
+    inv = 1.0 / det
+    grads[1, 0] = c1x * inv
+    grads[1, 1] = c1y * inv
+    grads[1, 2] = c1z * inv
+    grads[2, 0] = c2x * inv
+    grads[2, 1] = c2y * inv
+    grads[2, 2] = c2z * inv
+    grads[3, 0] = c3x * inv
+    grads[3, 1] = c3y * inv
+    grads[3, 2] = c3z * inv
+    for a in range(3):
+        grads[0, a] = -(grads[1, a] + grads[2, a] + grads[3, a])
+    return det
+
+
+@njit(inline="always")
+def _barycentric_rows(x_tri, x_tet, grads, lam):
+    """``lam[i, j] = lambda_j(x_tri[i])`` for the n points of ``x_tri`` (n, 3)."""
+    for i in range(x_tri.shape[0]):
+        dx = x_tri[i, 0] - x_tet[0, 0]
+        dy = x_tri[i, 1] - x_tet[0, 1]
+        dz = x_tri[i, 2] - x_tet[0, 2]
+        s = 0.0
+        for j in range(1, 4):
+            v = grads[j, 0] * dx + grads[j, 1] * dy + grads[j, 2] * dz
+            lam[i, j] = v
+            s += v
+        lam[i, 0] = 1.0 - s
+
+
+@njit(inline="always")
+def _clip(lam, mu, vlab, elab):
+    """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
+
+    Sutherland-Hodgman on two alternating buffers. A vertex with ``L >= -CLIP_TOL`` is kept with
+    its labels; a new vertex is created only where an edge strictly crosses the band
+    ``|L| <= CLIP_TOL``, and gets the labels (edge line, face line).
+
+    Args:
+        lam: (3, 4) barycentric coordinates of the triangle vertices in the tetrahedron.
+        mu: (2, MAX_POLYGON_VERTICES, 3) work buffer; the result is in ``mu[0, :n]``.
+        vlab: (2, MAX_POLYGON_VERTICES, 2) int work buffer: the two lines through each vertex.
+        elab: (2, MAX_POLYGON_VERTICES) int work buffer: the line of the edge k -> k + 1.
+
+    Returns:
+        Number n of polygon vertices (counter-clockwise in the parameter plane), 0 if the
+        intersection is empty or has fewer than 3 vertices.
+    """
+    # quick rejection: a tetrahedron face plane separates the triangle
+    for j in range(4):
+        if lam[0, j] < -CLIP_TOL and lam[1, j] < -CLIP_TOL and lam[2, j] < -CLIP_TOL:
+            return 0
+    for i in range(3):
+        for r in range(3):
+            mu[0, i, r] = 0.0
+        mu[0, i, i] = 1.0
+        # vertex i lies on the edges mu_{i+1} = 0 and mu_{i+2} = 0; edge i -> i+1 on mu_{i+2} = 0
+        vlab[0, i, 0] = (i + 1) % 3
+        vlab[0, i, 1] = (i + 2) % 3
+        elab[0, i] = (i + 2) % 3
+    n = 3
+    cur = 0
+    for j in range(4):
+        nxt = 1 - cur
+        # all vertices inside: nothing to clip
+        n_out = 0
+        for k in range(n):
+            L = mu[cur, k, 0] * lam[0, j] + mu[cur, k, 1] * lam[1, j] + mu[cur, k, 2] * lam[2, j]
+            if L < -CLIP_TOL:
+                n_out += 1
+        if n_out == 0:
+            continue
+        if n_out == n:
+            return 0
+        m = 0
+        Lp = mu[cur, 0, 0] * lam[0, j] + mu[cur, 0, 1] * lam[1, j] + mu[cur, 0, 2] * lam[2, j]
+        for k in range(n):
+            k1 = k + 1 if k + 1 < n else 0
+            Lq = (
+                mu[cur, k1, 0] * lam[0, j] + mu[cur, k1, 1] * lam[1, j] + mu[cur, k1, 2] * lam[2, j]
+            )
+            p_in = Lp >= -CLIP_TOL
+            q_in = Lq >= -CLIP_TOL
+            cross = (Lp > CLIP_TOL and Lq < -CLIP_TOL) or (Lp < -CLIP_TOL and Lq > CLIP_TOL)
+            if p_in:
+                for r in range(3):
+                    mu[nxt, m, r] = mu[cur, k, r]
+                vlab[nxt, m, 0] = vlab[cur, k, 0]
+                vlab[nxt, m, 1] = vlab[cur, k, 1]
+                # the edge leaving a kept vertex follows the face once the old edge is gone
+                elab[nxt, m] = elab[cur, k] if (q_in or cross) else 3 + j
+                m += 1
+            if cross:
+                t = Lp / (Lp - Lq)
+                for r in range(3):
+                    mu[nxt, m, r] = mu[cur, k, r] + t * (mu[cur, k1, r] - mu[cur, k, r])
+                vlab[nxt, m, 0] = elab[cur, k]
+                vlab[nxt, m, 1] = 3 + j
+                elab[nxt, m] = 3 + j if p_in else elab[cur, k]
+                m += 1
+            Lp = Lq
+        n = m
+        cur = nxt
+        if n < 3:
+            return 0
+    if cur == 1:
+        for k in range(n):
+            for r in range(3):
+                mu[0, k, r] = mu[1, k, r]
+            vlab[0, k, 0] = vlab[1, k, 0]
+            vlab[0, k, 1] = vlab[1, k, 1]
+            elab[0, k] = elab[1, k]
+    return n
+
+
+@njit(inline="always")
+def _polygon_area_ratio(mu, n):
+    """Area of polygon ``mu[0, :n]`` divided by the area of the parameter simplex."""
+    # shoelace in (mu_1, mu_2); the simplex has area 1/2 there
+    s = 0.0
+    for k in range(n):
+        k1 = k + 1 if k + 1 < n else 0
+        s += mu[0, k, 1] * mu[0, k1, 2] - mu[0, k, 2] * mu[0, k1, 1]
+    return s
+
+
+@njit(inline="always")
+def _triangle_area2(x_tri):
+    """Twice the triangle area (length^2), 0.0 below TRI_AREA_RTOL."""
+    ax = x_tri[1, 0] - x_tri[0, 0]
+    ay = x_tri[1, 1] - x_tri[0, 1]
+    az = x_tri[1, 2] - x_tri[0, 2]
+    bx = x_tri[2, 0] - x_tri[0, 0]
+    by = x_tri[2, 1] - x_tri[0, 1]
+    bz = x_tri[2, 2] - x_tri[0, 2]
+    nx = ay * bz - az * by
+    ny = az * bx - ax * bz
+    nz = ax * by - ay * bx
+    a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
+    cx = x_tri[2, 0] - x_tri[1, 0]
+    cy = x_tri[2, 1] - x_tri[1, 1]
+    cz = x_tri[2, 2] - x_tri[1, 2]
+    h2 = max(ax * ax + ay * ay + az * az, bx * bx + by * by + bz * bz, cx * cx + cy * cy + cz * cz)
+    if not (a2 > TRI_AREA_RTOL * h2):
+        return 0.0
+    return a2
+
+
+@njit(cache=True)
+def _intersection_polygon(x_tri, x_tet, mu, vlab, elab):
+    """Clip one pair; returns n (polygon in ``mu[0, :n]``, labels in ``vlab[0, :n]``)."""
+    grads = np.empty((4, 3), dtype=FLOAT)
+    if _tet_gradients(x_tet, grads) == 0.0:
+        return 0
+    if _triangle_area2(x_tri) == 0.0:
+        return 0
+    lam = np.empty((3, 4), dtype=FLOAT)
+    _barycentric_rows(x_tri, x_tet, grads, lam)
+    return _clip(lam, mu, vlab, elab)
+
+
+@njit(cache=True)
+def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
+    """Intersection test for many pairs: ``out[p] = True`` where the polygon is non-empty.
+
+    Args:
+        x: (nv, 3) current vertex coordinates.
+        tri: (nt, 3) boundary triangles (vertex indices).
+        tet: (nk, 4) tetrahedra (vertex indices).
+        pair_tri, pair_tet: (np,) candidate pairs.
+        out: (np,) bool output.
+
+    Returns:
+        Number of intersecting pairs.
+    """
+    grads = np.empty((4, 3), dtype=FLOAT)
+    lam = np.empty((3, 4), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    xs = np.empty((3, 3), dtype=FLOAT)
+    mu = np.empty((2, MAX_POLYGON_VERTICES, 3), dtype=FLOAT)
+    vlab = np.empty((2, MAX_POLYGON_VERTICES, 2), dtype=np.int64)
+    elab = np.empty((2, MAX_POLYGON_VERTICES), dtype=np.int64)
+    count = 0
+    for p in range(pair_tri.shape[0]):
+        out[p] = False
+        for a in range(4):
+            for r in range(3):
+                xt[a, r] = x[tet[pair_tet[p], a], r]
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        if _tet_gradients(xt, grads) == 0.0:
+            continue
+        _barycentric_rows(xs, xt, grads, lam)
+        # a triangle vertex inside the tetrahedron settles it without clipping
+        inside = False
+        for i in range(3):
+            if lam[i, 0] >= 0.0 and lam[i, 1] >= 0.0 and lam[i, 2] >= 0.0 and lam[i, 3] >= 0.0:
+                inside = True
+        if inside or _clip(lam, mu, vlab, elab) >= 3:
+            if _triangle_area2(xs) > 0.0:
+                out[p] = True
+                count += 1
+    return count
+
+
+def intersection_polygon(x_tri: np.ndarray, x_tet: np.ndarray) -> np.ndarray:
+    """Intersection of a triangle with a tetrahedron.
+
+    Args:
+        x_tri: (3, 3) triangle vertex coordinates (length).
+        x_tet: (4, 3) tetrahedron vertex coordinates (length).
+
+    Returns:
+        (n, 3) vertices of the convex intersection polygon (length), ordered
+        counter-clockwise about the triangle normal ``(x1 - x0) x (x2 - x0)``; n = 0 when they
+        do not intersect (or the tetrahedron is flat, or the triangle has zero area).
+    """
+    x_tri = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
+    x_tet = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
+    mu = np.empty((2, MAX_POLYGON_VERTICES, 3), dtype=FLOAT)
+    vlab = np.empty((2, MAX_POLYGON_VERTICES, 2), dtype=np.int64)
+    elab = np.empty((2, MAX_POLYGON_VERTICES), dtype=np.int64)
+    n = _intersection_polygon(x_tri, x_tet, mu, vlab, elab)
+    return mu[0, :n] @ x_tri
