@@ -16,10 +16,12 @@ extent (quickselect, O(n) per level), leaves of at most ``leaf_size`` elements.
 
 Refit: element boxes from new vertex positions, then leaf and internal boxes bottom-up, O(n),
 topology unchanged. Its quality is measured by the summed surface area of the internal node
-boxes divided by the summed surface area of the element boxes (the SAH traversal cost up to a
-constant, normalised so that a uniform deformation of the mesh leaves it unchanged). A refitted
-tree *needs a rebuild* when that ratio exceeds ``REBUILD_FACTOR`` times its value right after the
-last build: boxes then overlap so much that queries visit many more nodes.
+boxes divided by the surface area of the root box (the expected number of internal nodes a
+query visits, up to a constant: a box is entered with probability roughly proportional to its
+area). Translation, uniform scaling and (nearly) rotation leave it unchanged; vertices drifting
+away from their build-time neighbours inflate the inner boxes and raise it. A refitted tree
+*needs a rebuild* when the ratio exceeds ``REBUILD_FACTOR`` times its value right after the
+last build.
 
 Queries: all (query box, element box) overlaps as flat pair arrays, with an optional margin that
 inflates the query boxes; nearest triangle to points with exact point-triangle distance
@@ -47,8 +49,8 @@ __all__ = [
 
 #: Maximum number of elements per leaf (few: leaf tests are cheap, deep trees prune well).
 LEAF_SIZE = 4
-#: Rebuild when the refit quality ratio (internal-box area / element-box area) has grown by
-#: this factor since the last build.
+#: Rebuild when the refit quality ratio (summed internal-box area / root-box area) has grown by
+#: this factor since the last build: queries then visit about that many times more nodes.
 REBUILD_FACTOR = 2.0
 #: Traversal stack depth; a median-split tree over 2**60 elements is 61 levels deep, and a
 #: depth-first traversal holds at most one pending sibling per level plus the current node.
@@ -185,7 +187,7 @@ def _build(points, cells, leaf_size):
 
     Returns:
         order, cells_sorted, node_start, node_count, node_right, elem_box, node_box,
-        internal-box area, element-box area.
+        summed internal-box area, root-box area.
     """
     n = cells.shape[0]
     box = _element_boxes(points, cells)
@@ -259,7 +261,7 @@ def _build(points, cells, leaf_size):
         cells_sorted[i] = cells[order[i]]
     elem_box = np.empty((n, 6), dtype=points.dtype)
     node_box = np.empty((n_nodes, 6), dtype=points.dtype)
-    a_int, a_elem = _refit(
+    a_int, a_root = _refit(
         points, cells_sorted, node_start, node_count, node_right, elem_box, node_box
     )
     return (
@@ -271,7 +273,7 @@ def _build(points, cells, leaf_size):
         elem_box,
         node_box,
         a_int,
-        a_elem,
+        a_root,
     )
 
 
@@ -280,11 +282,10 @@ def _refit(points, cells_sorted, node_start, node_count, node_right, elem_box, n
     """Recompute element and node boxes from new vertex positions, in place, O(n).
 
     Returns:
-        (summed surface area of internal node boxes, summed surface area of element boxes).
+        (summed surface area of the internal node boxes, surface area of the root box).
     """
     n = cells_sorted.shape[0]
     k = cells_sorted.shape[1]
-    a_elem = 0.0
     for e in range(n):
         v = cells_sorted[e, 0]
         x0 = points[v, 0]
@@ -310,7 +311,6 @@ def _refit(points, cells_sorted, node_start, node_count, node_right, elem_box, n
         elem_box[e, 3] = x1
         elem_box[e, 4] = y1
         elem_box[e, 5] = z1
-        a_elem += 2.0 * ((x1 - x0) * (y1 - y0) + (y1 - y0) * (z1 - z0) + (z1 - z0) * (x1 - x0))
     a_int = 0.0
     for i in range(node_start.shape[0] - 1, -1, -1):
         r = node_right[i]
@@ -328,7 +328,8 @@ def _refit(points, cells_sorted, node_start, node_count, node_right, elem_box, n
                 node_box[i, d] = min(node_box[left, d], node_box[r, d])
                 node_box[i, d + 3] = max(node_box[left, d + 3], node_box[r, d + 3])
             a_int += _box_area(node_box[i])
-    return a_int, a_elem
+    a_root = _box_area(node_box[0]) if node_box.shape[0] > 0 else 0.0
+    return a_int, a_root
 
 
 # ------------------------------------------------------------------------------------------
@@ -591,9 +592,9 @@ class AABBTree:
             self._elem_box,
             self._node_box,
             a_int,
-            a_elem,
+            a_root,
         ) = _build(p, self._cells, self.leaf_size)
-        self._quality_at_build = self._ratio(a_int, a_elem)
+        self._quality_at_build = self._ratio(a_int, a_root)
         self._quality = self._quality_at_build
 
     def refit(self, points: np.ndarray) -> None:
@@ -608,7 +609,7 @@ class AABBTree:
                 f"refit got {p.shape[0]} points, the tree was built over {self._points.shape[0]}"
             )
         self._points = p
-        a_int, a_elem = _refit(
+        a_int, a_root = _refit(
             p,
             self._cells_sorted,
             self._node_start,
@@ -617,15 +618,15 @@ class AABBTree:
             self._elem_box,
             self._node_box,
         )
-        self._quality = self._ratio(a_int, a_elem)
+        self._quality = self._ratio(a_int, a_root)
 
     @staticmethod
-    def _ratio(a_int: float, a_elem: float) -> float:
-        return a_int / a_elem if a_elem > 0.0 else 1.0
+    def _ratio(a_int: float, a_root: float) -> float:
+        return a_int / a_root if a_root > 0.0 else 0.0
 
     @property
     def quality(self) -> float:
-        """Current internal-box area / element-box area (lower is better)."""
+        """Current summed internal-box area / root-box area (lower is better)."""
         return self._quality
 
     @property
