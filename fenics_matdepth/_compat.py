@@ -7,7 +7,13 @@ from __future__ import annotations
 
 import dolfinx
 
-__all__ = ["DOLFINX_VERSION", "gmsh_model_to_mesh", "solve_nonlinear"]
+__all__ = [
+    "DOLFINX_VERSION",
+    "geometry_cmap",
+    "geometry_dofmap",
+    "gmsh_model_to_mesh",
+    "solve_nonlinear",
+]
 
 #: (major, minor) of the DOLFINx in use.
 DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
@@ -126,3 +132,25 @@ def gmsh_model_to_mesh(model, comm, rank: int = 0, gdim: int = 3):
 
     mesh, cell_tags, facet_tags = _gmsh_io.model_to_mesh(model, comm, rank, gdim=gdim)[:3]
     return mesh, cell_tags, facet_tags
+
+
+def geometry_cmap(mesh):
+    """The (single) coordinate element of ``mesh.geometry``.
+
+    DOLFINx 0.11 supports mixed-topology geometry and deprecates ``geometry.cmap`` in favour of
+    ``geometry.cmaps[0]``; 0.9 only has ``geometry.cmap``.
+    """
+    geometry = mesh.geometry
+    cmaps = getattr(geometry, "cmaps", None)
+    return cmaps[0] if cmaps is not None else geometry.cmap
+
+
+def geometry_dofmap(mesh):
+    """The (num_cells, num_nodes) geometry dofmap of a single-cell-type mesh.
+
+    ``geometry.dofmaps[0]`` where it exists (0.11 deprecates ``geometry.dofmap``), else
+    ``geometry.dofmap``.
+    """
+    geometry = mesh.geometry
+    dofmaps = getattr(geometry, "dofmaps", None)
+    return dofmaps[0] if dofmaps is not None else geometry.dofmap

@@ -20,6 +20,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
+from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.bvh import AABBTree
 
@@ -100,7 +101,7 @@ def _check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
         )
     if mesh.geometry.dim != 3:
         raise ValueError(f"material_depth needs a 3D geometry, got gdim={mesh.geometry.dim}")
-    degree = mesh.geometry.cmap.degree
+    degree = geometry_cmap(mesh).degree
     if degree != 1:
         raise ValueError(
             f"material_depth needs affine (degree-1) geometry, got a degree-{degree} "
@@ -152,7 +153,7 @@ def _p1_dof_coordinates(V: dolfinx.fem.FunctionSpace) -> np.ndarray:
     imap = V.dofmap.index_map
     n_dofs = imap.size_local + imap.num_ghosts
     dofs = np.asarray(V.dofmap.list).reshape(-1)
-    nodes = np.asarray(mesh.geometry.dofmap).reshape(-1)
+    nodes = np.asarray(geometry_dofmap(mesh)).reshape(-1)
     if dofs.shape != nodes.shape:
         raise RuntimeError("P1 dofmap and geometry dofmap differ in shape: not an affine mesh")
     node_of_dof = np.full(n_dofs, -1, dtype=np.int64)
