@@ -9,6 +9,7 @@ import dolfinx
 
 __all__ = [
     "DOLFINX_VERSION",
+    "create_tetrahedral_mesh",
     "geometry_cmap",
     "geometry_dofmap",
     "gmsh_model_to_mesh",
@@ -154,3 +155,24 @@ def geometry_dofmap(mesh):
     geometry = mesh.geometry
     dofmaps = getattr(geometry, "dofmaps", None)
     return dofmaps[0] if dofmaps is not None else geometry.dofmap
+
+
+def create_tetrahedral_mesh(comm, cells, x):
+    """An affine tetrahedral mesh from vertex coordinates and cells (rank 0's data is used).
+
+    ``dolfinx.mesh.create_mesh`` takes ``(comm, cells, x, element)`` on 0.9 and
+    ``(comm, cells, element, x)`` from 0.10 on.
+    """
+    import basix.ufl
+    import numpy as np
+    import ufl
+
+    element = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
+    if comm.rank != 0:
+        cells = np.empty((0, 4), dtype=np.int64)
+        x = np.empty((0, 3), dtype=np.float64)
+    cells = np.asarray(cells, dtype=np.int64)
+    x = np.asarray(x, dtype=np.float64)
+    if DOLFINX_VERSION >= (0, 10):
+        return dolfinx.mesh.create_mesh(comm, cells, element, x)
+    return dolfinx.mesh.create_mesh(comm, cells, x, element)
