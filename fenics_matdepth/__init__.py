@@ -12,6 +12,7 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from fenics_matdepth import contact, geometry, materials
+from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.depth import material_depth
 
-__all__ = ["__version__", "contact", "geometry", "material_depth", "materials"]
+__all__ = ["ContactOperator", "__version__", "contact", "geometry", "material_depth", "materials"]
