@@ -41,6 +41,9 @@ from fenics_matdepth.geometry.clip import (
 __all__ = ["collocation_energy", "pair_energy"]
 
 _NV = MAX_POLYGON_VERTICES
+#: Below this |sum(c_a x c_b)| two polygon lines are taken as parallel (derivative guard; the
+#: coefficients are barycentric values of order one, so this only catches exact parallelism).
+_PARALLEL_TOL = 1e-100
 
 
 @njit(cache=True)
@@ -90,6 +93,10 @@ def _vertex_jacobian(lam, mu_k, la, lb, jac):
     for r in range(3):
         for c in range(12):
             jac[r, c] = 0.0
+    if not (abs(s) > _PARALLEL_TOL):
+        # the two lines are parallel to rounding (an edge lying in a face plane): the vertex
+        # does not move to first order in any direction we can resolve; report no motion
+        return np.inf
     inv = 1.0 / s
     for i in range(3):
         # d m / d c_a[i] = e_i x c_b,  d m / d c_b[i] = c_a x e_i

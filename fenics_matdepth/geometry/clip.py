@@ -12,10 +12,16 @@ the column ``Lam[:, j]`` for a tetrahedron face, and the vertex where lines a an
 that the contact kernels (`fenics_matdepth.contact.kernels`) can differentiate the polygon
 exactly.
 
-Robustness: the clipper works on barycentric values only (dimensionless, O(1)), treats
-``|L| <= CLIP_TOL`` as "on the line" (kept, no new vertex), and creates a vertex only where an
-edge strictly crosses the band, so no division by a vanishing difference occurs and the
-polygon (hence its area) moves by O(CLIP_TOL) at a degenerate configuration. Flat tetrahedra
+Robustness: the clipper works on barycentric values only (dimensionless). Barycentric
+coordinates of the triangle corners within rounding noise of zero (``|Lam[i, j]| <= CLIP_TOL *
+(1 + sum_j |Lam[i, j]|)``) are snapped to exactly zero, so that exact incidences of the input
+(a corner on a face plane, a triangle in a face plane, an edge through an edge) are seen as
+such; the clipping itself then uses exact sign tests (a vertex is kept if ``L >= 0``, a new
+vertex is made only where an edge strictly changes sign, at ``t = L_p / (L_p - L_q)`` with a
+non-zero denominator), so the result is the exact intersection for barycentric data perturbed
+by at most CLIP_TOL: continuous, never NaN. (Near-coplanar configurations are intrinsically
+ill-conditioned: a triangle tilted by an angle a out of a face plane has its cut points
+determined to rounding / a.) Flat tetrahedra
 (``|6 V| <= TET_VOLUME_RTOL * h^3``, h the longest edge) and zero-area triangles give an empty
 intersection.
 """
@@ -35,9 +41,9 @@ __all__ = [
     "intersection_polygon",
 ]
 
-#: Band half-width (dimensionless, barycentric units) inside which a polygon vertex counts as
-#: lying on a tetrahedron face: an area error of at most O(CLIP_TOL * triangle area).
-CLIP_TOL = 1e-13
+#: Relative threshold (barycentric units) below which a triangle corner's barycentric
+#: coordinate is rounding noise and is snapped to exactly zero (a few ulps of the row's size).
+CLIP_TOL = 1e-14
 #: A tetrahedron with ``|6 V| <= TET_VOLUME_RTOL * h**3`` (h = longest edge) is flat: its
 #: barycentric coordinates are not defined and it contributes nothing.
 TET_VOLUME_RTOL = 1e-12
@@ -122,12 +128,13 @@ def _barycentric_rows(x_tri, x_tet, grads, lam):
 def _clip(lam, mu, vlab, elab):
     """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
 
-    Sutherland-Hodgman on two alternating buffers. A vertex with ``L >= -CLIP_TOL`` is kept with
-    its labels; a new vertex is created only where an edge strictly crosses the band
-    ``|L| <= CLIP_TOL``, and gets the labels (edge line, face line).
+    Sutherland-Hodgman on two alternating buffers. A vertex with ``L >= 0`` is kept with its
+    labels; a new vertex is created only where an edge strictly changes sign, and gets the
+    labels (edge line, face line).
 
     Args:
-        lam: (3, 4) barycentric coordinates of the triangle vertices in the tetrahedron.
+        lam: (3, 4) barycentric coordinates of the triangle vertices in the tetrahedron;
+            entries within rounding noise of zero are set to exactly zero (in place).
         mu: (2, MAX_POLYGON_VERTICES, 3) work buffer; the result is in ``mu[0, :n]``.
         vlab: (2, MAX_POLYGON_VERTICES, 2) int work buffer: the two lines through each vertex.
         elab: (2, MAX_POLYGON_VERTICES) int work buffer: the line of the edge k -> k + 1.
@@ -136,9 +143,14 @@ def _clip(lam, mu, vlab, elab):
         Number n of polygon vertices (counter-clockwise in the parameter plane), 0 if the
         intersection is empty or has fewer than 3 vertices.
     """
+    for i in range(3):
+        size = 1.0 + abs(lam[i, 0]) + abs(lam[i, 1]) + abs(lam[i, 2]) + abs(lam[i, 3])
+        for j in range(4):
+            if abs(lam[i, j]) <= CLIP_TOL * size:
+                lam[i, j] = 0.0
     # quick rejection: a tetrahedron face plane separates the triangle
     for j in range(4):
-        if lam[0, j] < -CLIP_TOL and lam[1, j] < -CLIP_TOL and lam[2, j] < -CLIP_TOL:
+        if lam[0, j] < 0.0 and lam[1, j] < 0.0 and lam[2, j] < 0.0:
             return 0
     for i in range(3):
         for r in range(3):
@@ -156,7 +168,7 @@ def _clip(lam, mu, vlab, elab):
         n_out = 0
         for k in range(n):
             L = mu[cur, k, 0] * lam[0, j] + mu[cur, k, 1] * lam[1, j] + mu[cur, k, 2] * lam[2, j]
-            if L < -CLIP_TOL:
+            if L < 0.0:
                 n_out += 1
         if n_out == 0:
             continue
@@ -169,9 +181,9 @@ def _clip(lam, mu, vlab, elab):
             Lq = (
                 mu[cur, k1, 0] * lam[0, j] + mu[cur, k1, 1] * lam[1, j] + mu[cur, k1, 2] * lam[2, j]
             )
-            p_in = Lp >= -CLIP_TOL
-            q_in = Lq >= -CLIP_TOL
-            cross = (Lp > CLIP_TOL and Lq < -CLIP_TOL) or (Lp < -CLIP_TOL and Lq > CLIP_TOL)
+            p_in = Lp >= 0.0
+            q_in = Lq >= 0.0
+            cross = (Lp > 0.0 and Lq < 0.0) or (Lp < 0.0 and Lq > 0.0)
             if p_in:
                 for r in range(3):
                     mu[nxt, m, r] = mu[cur, k, r]
@@ -282,10 +294,10 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
         if _tet_gradients(xt, grads) == 0.0:
             continue
         _barycentric_rows(xs, xt, grads, lam)
-        # a triangle vertex inside the tetrahedron settles it without clipping
+        # a triangle vertex strictly inside the tetrahedron settles it without clipping
         inside = False
         for i in range(3):
-            if lam[i, 0] >= 0.0 and lam[i, 1] >= 0.0 and lam[i, 2] >= 0.0 and lam[i, 3] >= 0.0:
+            if lam[i, 0] > 0.0 and lam[i, 1] > 0.0 and lam[i, 2] > 0.0 and lam[i, 3] > 0.0:
                 inside = True
         if inside or _clip(lam, mu, vlab, elab) >= 3:
             if _triangle_area2(xs) > 0.0:
