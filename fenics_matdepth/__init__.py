@@ -14,5 +14,15 @@ __version__ = "0.1.0"
 from fenics_matdepth import contact, geometry, materials
 from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.depth import material_depth
+from fenics_matdepth.solvers import ContactProblem, SolveResult
 
-__all__ = ["ContactOperator", "__version__", "contact", "geometry", "material_depth", "materials"]
+__all__ = [
+    "ContactOperator",
+    "ContactProblem",
+    "SolveResult",
+    "__version__",
+    "contact",
+    "geometry",
+    "material_depth",
+    "materials",
+]
