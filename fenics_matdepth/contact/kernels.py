@@ -41,6 +41,9 @@ from fenics_matdepth.geometry.clip import (
 __all__ = ["collocation_energy", "pair_energy"]
 
 _NV = MAX_POLYGON_VERTICES
+# vertex lists of the single-pair helpers: triangle 0..2, tetrahedron 3..6
+_ONE_TRI = np.array([[0, 1, 2]], dtype=INDEX)
+_ONE_TET = np.array([[3, 4, 5, 6]], dtype=INDEX)
 #: Below this |sum(c_a x c_b)| two polygon lines are taken as parallel (derivative guard; the
 #: coefficients are barycentric values of order one, so this only catches exact parallelism).
 _PARALLEL_TOL = 1e-100
@@ -69,6 +72,7 @@ def _area_work():
         np.empty(9, dtype=FLOAT),  # 16 d A / d x
         np.empty((9, 9), dtype=FLOAT),  # 17 d2 A / d x2
         np.empty((3, 3), dtype=FLOAT),  # 18 W[i] = sum_j dPhi/dLam_ij grad lambda_j
+        np.empty((9, 3), dtype=FLOAT),  # 19 dn[3 i + a] = d (triangle normal) / d x_ia
     )
 
 
@@ -128,47 +132,54 @@ def _vertex_jacobian(lam, mu_k, la, lb, jac):
 
 
 @njit(inline="always")
+def _dm_column(lam, la, lb, col):
+    """Column ``col`` (0..5) of d m / d (c_a, c_b), m = c_a x c_b: e_i x c_b or c_a x e_i."""
+    if col < 3:
+        i = col
+        c0 = _line(lam, lb, 0)
+        c1 = _line(lam, lb, 1)
+        c2 = _line(lam, lb, 2)
+        if i == 0:
+            return 0.0, -c2, c1
+        if i == 1:
+            return c2, 0.0, -c0
+        return -c1, c0, 0.0
+    i = col - 3
+    c0 = _line(lam, la, 0)
+    c1 = _line(lam, la, 1)
+    c2 = _line(lam, la, 2)
+    if i == 0:
+        return 0.0, c2, -c1
+    if i == 1:
+        return -c2, 0.0, c0
+    return c1, -c0, 0.0
+
+
+@njit(inline="always")
 def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
     """``hphi += sum_r w_r d2 mu_r / d Lam2`` for the vertex on lines la, lb."""
-    if la < 3 and lb < 3:
+    if (la < 3 and lb < 3) or not np.isfinite(s):
         return
-    ca = np.empty(3, dtype=FLOAT)
-    cb = np.empty(3, dtype=FLOAT)
-    for r in range(3):
-        ca[r] = _line(lam, la, r)
-        cb[r] = _line(lam, lb, r)
     wmu = w[0] * mu_k[0] + w[1] * mu_k[1] + w[2] * mu_k[2]
     inv2 = 1.0 / (s * s)
-    # columns of d m / d c (up to 6 variables) and their Lam indices
-    dm = np.zeros((6, 3), dtype=FLOAT)
-    idx = np.full(6, -1, dtype=np.int64)
-    for i in range(3):
-        if la >= 3:
-            e = np.zeros(3, dtype=FLOAT)
-            e[i] = 1.0
-            dm[i, 0] = e[1] * cb[2] - e[2] * cb[1]
-            dm[i, 1] = e[2] * cb[0] - e[0] * cb[2]
-            dm[i, 2] = e[0] * cb[1] - e[1] * cb[0]
-            idx[i] = 4 * i + la - 3
-        if lb >= 3:
-            e = np.zeros(3, dtype=FLOAT)
-            e[i] = 1.0
-            dm[3 + i, 0] = ca[1] * e[2] - ca[2] * e[1]
-            dm[3 + i, 1] = ca[2] * e[0] - ca[0] * e[2]
-            dm[3 + i, 2] = ca[0] * e[1] - ca[1] * e[0]
-            idx[3 + i] = 4 * i + lb - 3
-    # d2 mu_r / dm_t dm_u = (2 mu_r - delta_rt - delta_ru) / s^2, contracted with w
+    # d2 mu_r / dm_t dm_u = (2 mu_r - delta_rt - delta_ru) / s^2, contracted with w:
+    # Wm = (2 w.mu - w_t - w_u) / s^2, then hphi += dm^T Wm dm over the live columns
     for al in range(6):
-        if idx[al] < 0:
+        if (al < 3 and la < 3) or (al >= 3 and lb < 3):
             continue
+        ra = 4 * (al % 3) + (la if al < 3 else lb) - 3
+        a0, a1, a2 = _dm_column(lam, la, lb, al)
+        sa = a0 + a1 + a2
+        wa = w[0] * a0 + w[1] * a1 + w[2] * a2
         for be in range(6):
-            if idx[be] < 0:
+            if (be < 3 and la < 3) or (be >= 3 and lb < 3):
                 continue
-            acc = 0.0
-            for t in range(3):
-                for u in range(3):
-                    acc += dm[al, t] * (2.0 * wmu - w[t] - w[u]) * dm[be, u]
-            hphi[idx[al], idx[be]] += acc * inv2
+            rb = 4 * (be % 3) + (la if be < 3 else lb) - 3
+            b0, b1, b2 = _dm_column(lam, la, lb, be)
+            sb = b0 + b1 + b2
+            wb = w[0] * b0 + w[1] * b1 + w[2] * b2
+            # sum_tu a_t (2 wmu - w_t - w_u) b_u = 2 wmu sa sb - wa sb - sa wb
+            hphi[ra, rb] += (2.0 * wmu * sa * sb - wa * sb - sa * wb) * inv2
     if la >= 3 and lb >= 3:
         # d2 m / dc_a[i] dc_b[i'] = e_i x e_i', contracted with v = (d mu / d m)^T w
         v0 = (w[0] - wmu) / s
@@ -187,7 +198,7 @@ def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
                 hphi[4 * i2 + lb - 3, 4 * i + la - 3] += val
 
 
-@njit(cache=True)
+@njit(inline="always")
 def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
@@ -203,9 +214,28 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         The pair energy (0.0, with zero outputs, for an empty intersection, a flat tetrahedron
         or a zero-area triangle).
     """
-    (grads, lam, mu, vlab, elab, jmu, wmu, gphi, hphi, je, hf, hje, tt, vv, uu, gx, ga, ha, ww) = (
-        work
-    )
+    (
+        grads,
+        lam,
+        mu,
+        vlab,
+        elab,
+        jmu,
+        wmu,
+        gphi,
+        hphi,
+        je,
+        hf,
+        hje,
+        tt,
+        vv,
+        uu,
+        gx,
+        ga,
+        ha,
+        ww,
+        dn,
+    ) = work
     if want_grad:
         for c in range(21):
             grad[c] = 0.0
@@ -369,7 +399,6 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         xs[2, 0] - xs[0, 0]
     )
     inv_n = 1.0 / a2
-    dn = np.empty((9, 3), dtype=FLOAT)  # dn[3 i + a] = E_i x e_a
     for i in range(3):
         im = (i + 2) % 3
         ip = (i + 1) % 3
@@ -483,13 +512,6 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
 
 
 @njit(cache=True)
-def _area_pair_one(xs, xt, dt, penalty, want_grad, want_hess, grad, hess):
-    """One pair (for `pair_energy` and tests)."""
-    work = _area_work()
-    return _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess)
-
-
-@njit(cache=True)
 def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
     """Area-integration energies of many (triangle, tetrahedron) pairs.
 
@@ -554,8 +576,8 @@ def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_gra
     return active, energy, grad, hess
 
 
-@njit(cache=True)
-def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, grad, hess):
+@njit(inline="always")
+def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess):
     """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).
 
     ``E = (eps/2) W g^2`` with ``g = sum_j lambda_j(x_a) d_j`` when every ``lambda_j >= 0``.
@@ -567,9 +589,9 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, 
         for c in range(15):
             for c2 in range(15):
                 hess[c, c2] = 0.0
+    grads, lam, gg, dg = work
     if _tet_gradients(xt, grads) == 0.0:
         return 0.0
-    lam = np.empty(4, dtype=FLOAT)
     s = 0.0
     for j in range(1, 4):
         v = (
@@ -588,11 +610,11 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, 
     if not want_grad:
         return energy
     # grad g (constant in K); d g / d X_k = -lambda_k grad g
-    gg = np.zeros(3, dtype=FLOAT)
+    for a in range(3):
+        gg[a] = 0.0
     for j in range(4):
         for a in range(3):
             gg[a] += dt[j] * grads[j, a]
-    dg = np.empty(15, dtype=FLOAT)
     for a in range(3):
         dg[a] = gg[a]
         for k in range(4):
@@ -621,13 +643,6 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, 
 
 
 @njit(cache=True)
-def _collocation_pair_one(xa, xt, dt, weight, penalty, want_grad, want_hess, grad, hess):
-    """One pair (for `collocation_energy` and tests)."""
-    grads = np.empty((4, 3), dtype=FLOAT)
-    return _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, grads, grad, hess)
-
-
-@njit(cache=True)
 def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want_grad, want_hess):
     """Point-collocation energies of many (boundary vertex, tetrahedron) pairs.
 
@@ -651,7 +666,12 @@ def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want
     hess = np.zeros((npairs if want_hess else 0, 15, 15), dtype=FLOAT)
     g1 = np.empty(15, dtype=FLOAT)
     h1 = np.empty((15, 15), dtype=FLOAT)
-    grads = np.empty((4, 3), dtype=FLOAT)
+    work = (
+        np.empty((4, 3), dtype=FLOAT),
+        np.empty(4, dtype=FLOAT),
+        np.empty(3, dtype=FLOAT),
+        np.empty(15, dtype=FLOAT),
+    )
     xt = np.empty((4, 3), dtype=FLOAT)
     xa = np.empty(3, dtype=FLOAT)
     dt = np.empty(4, dtype=FLOAT)
@@ -667,7 +687,7 @@ def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want
         gout = grad[p] if want_grad else g1
         hout = hess[p] if want_hess else h1
         energy[p] = _collocation_pair(
-            xa, xt, dt, weight[node], penalty, want_grad, want_hess, grads, gout, hout
+            xa, xt, dt, weight[node], penalty, want_grad, want_hess, work, gout, hout
         )
     return energy, grad, hess
 
@@ -691,10 +711,11 @@ def pair_energy(
     xs = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
     xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
     dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
-    grad = np.zeros(21, dtype=FLOAT)
-    hess = np.zeros((21, 21), dtype=FLOAT)
-    energy = _area_pair_one(xs, xt, dt, float(penalty), True, True, grad, hess)
-    return float(energy), grad, hess
+    x = np.vstack([xs, xt])
+    depth = np.concatenate([np.zeros(3, dtype=FLOAT), dt])
+    one = np.zeros(1, dtype=INDEX)
+    energy, grad, hess = _area_pairs(x, depth, _ONE_TRI, _ONE_TET, one, one, penalty, True, True)
+    return float(energy[0]), grad[0], hess[0]
 
 
 def collocation_energy(
@@ -720,9 +741,11 @@ def collocation_energy(
     xa = np.ascontiguousarray(x_node, dtype=FLOAT).reshape(3)
     xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
     dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
-    grad = np.zeros(15, dtype=FLOAT)
-    hess = np.zeros((15, 15), dtype=FLOAT)
-    energy = _collocation_pair_one(
-        xa, xt, dt, float(weight), float(penalty), True, True, grad, hess
+    x = np.vstack([xa, xt])
+    depth = np.concatenate([np.zeros(1, dtype=FLOAT), dt])
+    weights = np.full(5, weight, dtype=FLOAT)
+    zero = np.zeros(1, dtype=INDEX)
+    energy, grad, hess = _collocation_pairs(
+        x, depth, weights, _ONE_TET - 2, zero, zero, penalty, True, True
     )
-    return float(energy), grad, hess
+    return float(energy[0]), grad[0], hess[0]
