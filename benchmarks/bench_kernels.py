@@ -21,14 +21,14 @@ TARGETS = {"intersection": 20e6, "energy+gradient": 3e6, "energy+gradient+hessia
 
 def candidate_pairs(npairs: int, seed: int = 0):
     """Independent (triangle, tetrahedron) pairs: unit-size tetrahedra of random shape and
-    orientation, and triangles of similar size whose bounding boxes overlap the tetrahedron's
-    (as a broad phase would deliver them); the offset is tuned so that about half intersect."""
+    orientation, and random triangles of similar size placed around each tetrahedron (as a broad
+    phase would deliver them); the offset is tuned so that about half intersect."""
     rng = np.random.default_rng(seed)
     ref = np.array([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) / np.sqrt(8.0)
     rot, _ = np.linalg.qr(rng.normal(size=(npairs, 3, 3)))
     x_tet = ref[None] @ rot + 0.15 * rng.normal(size=(npairs, 4, 3))
     centre = x_tet.mean(axis=1, keepdims=True)
-    x_tri = centre + 0.45 * rng.normal(size=(npairs, 1, 3)) + 0.5 * rng.normal(size=(npairs, 3, 3))
+    x_tri = centre + 0.25 * rng.normal(size=(npairs, 1, 3)) + 0.5 * rng.normal(size=(npairs, 3, 3))
     x = np.concatenate([x_tri, x_tet], axis=1).reshape(-1, 3)
     base = 7 * np.arange(npairs)
     tri = base[:, None] + np.arange(3)
