@@ -58,13 +58,13 @@ def _area_work():
         np.empty((2, _NV, 3), dtype=FLOAT),  # 2 mu (clipper buffers)
         np.empty((2, _NV, 2), dtype=np.int64),  # 3 vertex labels
         np.empty((2, _NV), dtype=np.int64),  # 4 edge labels
-        np.empty((_NV, 3, 12), dtype=FLOAT),  # 5 d mu_k / d Lam
+        np.empty((_NV, 3, 6), dtype=FLOAT),  # 5 d mu_k / d Lam, live columns only
         np.empty((_NV, 3), dtype=FLOAT),  # 6 d Phi / d mu_k
         np.empty(12, dtype=FLOAT),  # 7 d Phi / d Lam
         np.empty((12, 12), dtype=FLOAT),  # 8 d2 Phi / d Lam2
-        np.empty((9, 12), dtype=FLOAT),  # 9 edge Jacobian
+        np.empty((_NV, 6), dtype=np.int64),  # 9 Lam index of the live columns of 5
         np.empty((9, 9), dtype=FLOAT),  # 10 edge Hessian
-        np.empty((9, 12), dtype=FLOAT),  # 11 edge Hessian x Jacobian
+        np.empty((4, _NV, 3, 3), dtype=FLOAT),  # 11 Hessian blocks over (mu_k, G)
         np.empty((9, 9), dtype=FLOAT),  # 12 T: Hessian of Phi w.r.t. triangle vertices
         np.empty((9, 21), dtype=FLOAT),  # 13 V: half-contracted Hessian
         np.empty((12, 9), dtype=FLOAT),  # 14 U
@@ -73,6 +73,7 @@ def _area_work():
         np.empty((9, 9), dtype=FLOAT),  # 17 d2 A / d x2
         np.empty((3, 3), dtype=FLOAT),  # 18 W[i] = sum_j dPhi/dLam_ij grad lambda_j
         np.empty((9, 3), dtype=FLOAT),  # 19 dn[3 i + a] = d (triangle normal) / d x_ia
+        np.empty(_NV, dtype=np.int64),  # 20 number of live columns per vertex
     )
 
 
@@ -85,50 +86,76 @@ def _line(lam, label, r):
 
 
 @njit(inline="always")
-def _vertex_jacobian(lam, mu_k, la, lb, jac):
-    """``jac = d mu / d Lam`` (3, 12) for the vertex on lines la, lb; returns ``s = sum(m)``."""
+def _line_sum_cross(lam, la, lb):
+    """``s = sum(c_a x c_b)`` (the homogeneous weight of the vertex on lines la, lb)."""
     ca0 = _line(lam, la, 0)
     ca1 = _line(lam, la, 1)
     ca2 = _line(lam, la, 2)
     cb0 = _line(lam, lb, 0)
     cb1 = _line(lam, lb, 1)
     cb2 = _line(lam, lb, 2)
-    s = (ca1 * cb2 - ca2 * cb1) + (ca2 * cb0 - ca0 * cb2) + (ca0 * cb1 - ca1 * cb0)
-    for r in range(3):
-        for c in range(12):
-            jac[r, c] = 0.0
+    return (ca1 * cb2 - ca2 * cb1) + (ca2 * cb0 - ca0 * cb2) + (ca0 * cb1 - ca1 * cb0)
+
+
+@njit(inline="always")
+def _vertex_gradient(lam, mu_k, la, lb, w, gphi):
+    """``gphi += (d mu / d Lam)^T w`` for the vertex on lines la, lb.
+
+    With ``v = (d mu / d m)^T w = (w - (w . mu) 1) / s``: ``d Phi / d c_a = c_b x v`` and
+    ``d Phi / d c_b = v x c_a``.
+    """
+    if la < 3 and lb < 3:
+        return
+    s = _line_sum_cross(lam, la, lb)
+    if not (abs(s) > _PARALLEL_TOL):
+        return
+    wmu = w[0] * mu_k[0] + w[1] * mu_k[1] + w[2] * mu_k[2]
+    v0 = (w[0] - wmu) / s
+    v1 = (w[1] - wmu) / s
+    v2 = (w[2] - wmu) / s
+    if la >= 3:
+        cb0 = _line(lam, lb, 0)
+        cb1 = _line(lam, lb, 1)
+        cb2 = _line(lam, lb, 2)
+        gphi[la - 3] += cb1 * v2 - cb2 * v1
+        gphi[4 + la - 3] += cb2 * v0 - cb0 * v2
+        gphi[8 + la - 3] += cb0 * v1 - cb1 * v0
+    if lb >= 3:
+        ca0 = _line(lam, la, 0)
+        ca1 = _line(lam, la, 1)
+        ca2 = _line(lam, la, 2)
+        gphi[lb - 3] += v1 * ca2 - v2 * ca1
+        gphi[4 + lb - 3] += v2 * ca0 - v0 * ca2
+        gphi[8 + lb - 3] += v0 * ca1 - v1 * ca0
+
+
+@njit(inline="always")
+def _vertex_jacobian(lam, mu_k, la, lb, jac, idx):
+    """Live columns of ``d mu / d Lam`` for the vertex on lines la, lb.
+
+    Writes ``jac[:, :nc]`` (3, nc) and their Lam indices ``idx[:nc]``; returns ``(s, nc)`` with
+    ``s = sum(c_a x c_b)`` (``inf`` and ``nc = 0`` when the lines are parallel to rounding).
+    """
+    if la < 3 and lb < 3:
+        return 1.0, 0
+    s = _line_sum_cross(lam, la, lb)
     if not (abs(s) > _PARALLEL_TOL):
         # the two lines are parallel to rounding (an edge lying in a face plane): the vertex
         # does not move to first order in any direction we can resolve; report no motion
-        return np.inf
+        return np.inf, 0
     inv = 1.0 / s
-    for i in range(3):
-        # d m / d c_a[i] = e_i x c_b,  d m / d c_b[i] = c_a x e_i
-        if la >= 3:
-            if i == 0:
-                d0, d1, d2 = 0.0, -cb2, cb1
-            elif i == 1:
-                d0, d1, d2 = cb2, 0.0, -cb0
-            else:
-                d0, d1, d2 = -cb1, cb0, 0.0
-            sd = d0 + d1 + d2
-            col = 4 * i + la - 3
-            jac[0, col] = (d0 - mu_k[0] * sd) * inv
-            jac[1, col] = (d1 - mu_k[1] * sd) * inv
-            jac[2, col] = (d2 - mu_k[2] * sd) * inv
-        if lb >= 3:
-            if i == 0:
-                d0, d1, d2 = 0.0, ca2, -ca1
-            elif i == 1:
-                d0, d1, d2 = -ca2, 0.0, ca0
-            else:
-                d0, d1, d2 = ca1, -ca0, 0.0
-            sd = d0 + d1 + d2
-            col = 4 * i + lb - 3
-            jac[0, col] = (d0 - mu_k[0] * sd) * inv
-            jac[1, col] = (d1 - mu_k[1] * sd) * inv
-            jac[2, col] = (d2 - mu_k[2] * sd) * inv
-    return s
+    nc = 0
+    for col in range(6):
+        if (col < 3 and la < 3) or (col >= 3 and lb < 3):
+            continue
+        d0, d1, d2 = _dm_column(lam, la, lb, col)
+        sd = d0 + d1 + d2
+        jac[0, nc] = (d0 - mu_k[0] * sd) * inv
+        jac[1, nc] = (d1 - mu_k[1] * sd) * inv
+        jac[2, nc] = (d2 - mu_k[2] * sd) * inv
+        idx[nc] = 4 * (col % 3) + (la if col < 3 else lb) - 3
+        nc += 1
+    return s, nc
 
 
 @njit(inline="always")
@@ -199,6 +226,57 @@ def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
 
 
 @njit(inline="always")
+def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi):
+    """``hphi += J^T B J + sum_k w_k . d2 mu_k``: the Hessian blocks over (mu_0.., G) pulled
+    back to Lam through the sparse vertex Jacobians (at most 6 live columns each) and
+    ``d G_i / d Lam_ij = d_j``."""
+    for k in range(n):
+        s, nc = _vertex_jacobian(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], jmu[k], jidx[k])
+        ncol[k] = nc
+        _vertex_curvature(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], s, wmu[k], hphi)
+    for k in range(n):
+        k1 = k + 1 if k + 1 < n else 0
+        nc = ncol[k]
+        nc1 = ncol[k1]
+        for a in range(nc):
+            ia = jidx[k, a]
+            # row a of J_k^T B_kk, J_k^T B_k,k+1 and J_k^T B_kG
+            t0 = t1 = t2 = 0.0
+            u0 = u1 = u2 = 0.0
+            c0 = c1 = c2 = 0.0
+            for r in range(3):
+                jr = jmu[k, r, a]
+                t0 += jr * blk[0, k, r, 0]
+                t1 += jr * blk[0, k, r, 1]
+                t2 += jr * blk[0, k, r, 2]
+                u0 += jr * blk[1, k, r, 0]
+                u1 += jr * blk[1, k, r, 1]
+                u2 += jr * blk[1, k, r, 2]
+                c0 += jr * blk[2, k, r, 0]
+                c1 += jr * blk[2, k, r, 1]
+                c2 += jr * blk[2, k, r, 2]
+            for b in range(nc):
+                hphi[ia, jidx[k, b]] += t0 * jmu[k, 0, b] + t1 * jmu[k, 1, b] + t2 * jmu[k, 2, b]
+            for b in range(nc1):
+                val = u0 * jmu[k1, 0, b] + u1 * jmu[k1, 1, b] + u2 * jmu[k1, 2, b]
+                hphi[ia, jidx[k1, b]] += val
+                hphi[jidx[k1, b], ia] += val
+            for j in range(4):
+                hphi[ia, j] += c0 * dt[j]
+                hphi[j, ia] += c0 * dt[j]
+                hphi[ia, 4 + j] += c1 * dt[j]
+                hphi[4 + j, ia] += c1 * dt[j]
+                hphi[ia, 8 + j] += c2 * dt[j]
+                hphi[8 + j, ia] += c2 * dt[j]
+    for i in range(3):
+        for i2 in range(3):
+            bg = blk[3, 0, i, i2]
+            for j in range(4):
+                for j2 in range(4):
+                    hphi[4 * i + j, 4 * i2 + j2] += bg * dt[j] * dt[j2]
+
+
+@njit(inline="always")
 def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
@@ -224,9 +302,9 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         wmu,
         gphi,
         hphi,
-        je,
+        jidx,
         hf,
-        hje,
+        blk,
         tt,
         vv,
         uu,
@@ -235,6 +313,7 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         ha,
         ww,
         dn,
+        ncol,
     ) = work
     if want_grad:
         for c in range(21):
@@ -266,17 +345,17 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         for k in range(n):
             for r in range(3):
                 wmu[k, r] = 0.0
-            _vertex_jacobian(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], jmu[k])
     if want_hess:
         for c in range(12):
             for c2 in range(12):
                 hphi[c, c2] = 0.0
-        # rows 6..8 of the edge Jacobian: d G_i / d Lam_ij = d_j
-        for r in range(3):
-            for c in range(12):
-                je[6 + r, c] = 0.0
-            for j in range(4):
-                je[6 + r, 4 * r + j] = dt[j]
+        # blk[0, k] = d2Phi/dmu_k2, blk[1, k] = d2Phi/dmu_k dmu_k+1, blk[2, k] = d2Phi/dmu_k dG,
+        # blk[3, 0] = d2Phi/dG2: each edge's 9 x 9 Hessian is added into these blocks first
+        for b in range(4):
+            for k in range(n):
+                for r in range(3):
+                    for c in range(3):
+                        blk[b, k, r, c] = 0.0
     for k in range(n):
         k1 = k + 1 if k + 1 < n else 0
         p0 = mu[0, k, 0]
@@ -336,41 +415,26 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         hf[2, 4] -= qq / 12.0
         hf[4, 2] -= qq / 12.0
         for r in range(3):
-            for c in range(12):
-                je[r, c] = jmu[k, r, c]
-                je[3 + r, c] = jmu[k1, r, c]
-        for r in range(9):
-            for c in range(12):
-                acc = 0.0
-                for t in range(9):
-                    acc += hf[r, t] * je[t, c]
-                hje[r, c] = acc
-        for r in range(12):
-            for c in range(12):
-                acc = 0.0
-                for t in range(9):
-                    acc += je[t, r] * hje[t, c]
-                hphi[r, c] += acc
+            for c in range(3):
+                blk[0, k, r, c] += hf[r, c]
+                blk[0, k1, r, c] += hf[3 + r, 3 + c]
+                blk[1, k, r, c] += hf[r, 3 + c]
+                blk[2, k, r, c] += hf[r, 6 + c]
+                blk[2, k1, r, c] += hf[3 + r, 6 + c]
+                blk[3, 0, r, c] += hf[6 + r, 6 + c]
 
     energy = penalty * area * phi
     if not want_grad:
         return energy
 
-    for c in range(12):
-        gphi[c] = 0.0
-    for k in range(n):
-        for c in range(12):
-            gphi[c] += (
-                jmu[k, 0, c] * wmu[k, 0] + jmu[k, 1, c] * wmu[k, 1] + jmu[k, 2, c] * wmu[k, 2]
-            )
     for j in range(4):
-        gphi[j] += wg0 * dt[j]
-        gphi[4 + j] += wg1 * dt[j]
-        gphi[8 + j] += wg2 * dt[j]
+        gphi[j] = wg0 * dt[j]
+        gphi[4 + j] = wg1 * dt[j]
+        gphi[8 + j] = wg2 * dt[j]
+    for k in range(n):
+        _vertex_gradient(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], wmu[k], gphi)
     if want_hess:
-        for k in range(n):
-            s = _vertex_jacobian(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], jmu[k])
-            _vertex_curvature(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], s, wmu[k], hphi)
+        _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
 
     # ---- chain rule through Lam(x): d Lam_ij / d x_i = grad_j, d Lam_ij / d X_k = -Lam_ik grad_j
     for i in range(3):
