@@ -277,7 +277,7 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
 
 
 @njit(inline="always")
-def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
+def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
     Args:
@@ -286,7 +286,10 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         penalty: eps (pressure / length).
         want_grad, want_hess: which derivatives to write.
         work: tuple from `_area_work`.
-        grad: (21,) output (written if want_grad); hess: (21, 21) output (if want_hess).
+        grad: (np, 21) output, row p written if want_grad; hess: (np, 21, 21) output, block p
+            written if want_hess (rows of the outputs are indexed here, not sliced: a view per
+            pair costs reference counting).
+        p: the output row.
 
     Returns:
         The pair energy (0.0, with zero outputs, for an empty intersection, a flat tetrahedron
@@ -317,11 +320,11 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
     ) = work
     if want_grad:
         for c in range(21):
-            grad[c] = 0.0
+            grad[p, c] = 0.0
     if want_hess:
         for c in range(21):
             for c2 in range(21):
-                hess[c, c2] = 0.0
+                hess[p, c, c2] = 0.0
     a2 = _triangle_area2(xs)
     if a2 == 0.0:
         return 0.0
@@ -482,9 +485,9 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
         ga[r] = 0.5 * (nx * dn[r, 0] + ny * dn[r, 1] + nz * dn[r, 2]) * inv_n
 
     for c in range(9):
-        grad[c] = penalty * (phi * ga[c] + area * gx[c])
+        grad[p, c] = penalty * (phi * ga[c] + area * gx[c])
     for c in range(9, 21):
-        grad[c] = penalty * area * gx[c]
+        grad[p, c] = penalty * area * gx[c]
     if not want_hess:
         return energy
 
@@ -542,15 +545,15 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
                     val = -(
                         lam[0, k] * vv[a, c] + lam[1, k] * vv[3 + a, c] + lam[2, k] * vv[6 + a, c]
                     )
-                hess[3 * al + a, c] = val
+                hess[p, 3 * al + a, c] = val
     # sum_ij dPhi/dLam_ij d2 Lam_ij: triangle-tet and tet-tet blocks
     for i in range(3):
         for k in range(4):
             for a in range(3):
                 for b in range(3):
                     val = -grads[k, a] * ww[i, b]
-                    hess[3 * i + a, 9 + 3 * k + b] += val
-                    hess[9 + 3 * k + b, 3 * i + a] += val
+                    hess[p, 3 * i + a, 9 + 3 * k + b] += val
+                    hess[p, 9 + 3 * k + b, 3 * i + a] += val
     for k in range(4):
         for l in range(4):
             for a in range(3):
@@ -560,18 +563,18 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess):
                         acc += (
                             lam[i, l] * ww[i, a] * grads[k, b] + lam[i, k] * grads[l, a] * ww[i, b]
                         )
-                    hess[9 + 3 * k + a, 9 + 3 * l + b] += acc
+                    hess[p, 9 + 3 * k + a, 9 + 3 * l + b] += acc
     # E = eps (A Phi): product rule
     for r in range(21):
         for c in range(21):
-            val = area * hess[r, c]
+            val = area * hess[p, r, c]
             if r < 9:
                 val += ga[r] * gx[c]
                 if c < 9:
                     val += phi * ha[r, c]
             if c < 9:
                 val += gx[r] * ga[c]
-            hess[r, c] = penalty * val
+            hess[p, r, c] = penalty * val
     return energy
 
 
@@ -597,8 +600,6 @@ def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want
     energy = np.zeros(npairs, dtype=FLOAT)
     grad = np.zeros((npairs if want_grad else 0, 21), dtype=FLOAT)
     hess = np.zeros((npairs if want_hess else 0, 21, 21), dtype=FLOAT)
-    g1 = np.empty(21, dtype=FLOAT)
-    h1 = np.empty((21, 21), dtype=FLOAT)
     work = _area_work()
     xs = np.empty((3, 3), dtype=FLOAT)
     xt = np.empty((4, 3), dtype=FLOAT)
@@ -612,9 +613,7 @@ def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want
             dt[a] = depth[v]
             for r in range(3):
                 xt[a, r] = x[v, r]
-        gout = grad[p] if want_grad else g1
-        hout = hess[p] if want_hess else h1
-        energy[p] = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, gout, hout)
+        energy[p] = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p)
     return energy, grad, hess
 
 
@@ -641,18 +640,18 @@ def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_gra
 
 
 @njit(inline="always")
-def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess):
+def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess, p):
     """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).
 
     ``E = (eps/2) W g^2`` with ``g = sum_j lambda_j(x_a) d_j`` when every ``lambda_j >= 0``.
     """
     if want_grad:
         for c in range(15):
-            grad[c] = 0.0
+            grad[p, c] = 0.0
     if want_hess:
         for c in range(15):
             for c2 in range(15):
-                hess[c, c2] = 0.0
+                hess[p, c, c2] = 0.0
     grads, lam, gg, dg = work
     if _tet_gradients(xt, grads) == 0.0:
         return 0.0
@@ -684,25 +683,25 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, g
         for k in range(4):
             dg[3 + 3 * k + a] = -lam[k] * gg[a]
     for c in range(15):
-        grad[c] = c0 * g * dg[c]
+        grad[p, c] = c0 * g * dg[c]
     if not want_hess:
         return energy
     for r in range(15):
         for c in range(15):
-            hess[r, c] = c0 * dg[r] * dg[c]
+            hess[p, r, c] = c0 * dg[r] * dg[c]
     # g * d2 g: node-tet block -grad_k[a] gg[b]; tet-tet block
     # lambda_l gg[a] grad_k[b] + lambda_k grad_l[a] gg[b]
     for k in range(4):
         for a in range(3):
             for b in range(3):
                 val = -c0 * g * grads[k, a] * gg[b]
-                hess[a, 3 + 3 * k + b] += val
-                hess[3 + 3 * k + b, a] += val
+                hess[p, a, 3 + 3 * k + b] += val
+                hess[p, 3 + 3 * k + b, a] += val
         for l in range(4):
             for a in range(3):
                 for b in range(3):
                     val = lam[l] * gg[a] * grads[k, b] + lam[k] * grads[l, a] * gg[b]
-                    hess[3 + 3 * k + a, 3 + 3 * l + b] += c0 * g * val
+                    hess[p, 3 + 3 * k + a, 3 + 3 * l + b] += c0 * g * val
     return energy
 
 
@@ -728,8 +727,6 @@ def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want
     energy = np.zeros(npairs, dtype=FLOAT)
     grad = np.zeros((npairs if want_grad else 0, 15), dtype=FLOAT)
     hess = np.zeros((npairs if want_hess else 0, 15, 15), dtype=FLOAT)
-    g1 = np.empty(15, dtype=FLOAT)
-    h1 = np.empty((15, 15), dtype=FLOAT)
     work = (
         np.empty((4, 3), dtype=FLOAT),
         np.empty(4, dtype=FLOAT),
@@ -748,10 +745,8 @@ def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want
             dt[a] = depth[v]
             for r in range(3):
                 xt[a, r] = x[v, r]
-        gout = grad[p] if want_grad else g1
-        hout = hess[p] if want_hess else h1
         energy[p] = _collocation_pair(
-            xa, xt, dt, weight[node], penalty, want_grad, want_hess, work, gout, hout
+            xa, xt, dt, weight[node], penalty, want_grad, want_hess, work, grad, hess, p
         )
     return energy, grad, hess
 

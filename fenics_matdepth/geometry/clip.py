@@ -125,6 +125,16 @@ def _barycentric_rows(x_tri, x_tet, grads, lam):
 
 
 @njit(inline="always")
+def _snap(lam):
+    """Set barycentric values within rounding noise of zero (CLIP_TOL) to exactly zero."""
+    for i in range(3):
+        size = 1.0 + abs(lam[i, 0]) + abs(lam[i, 1]) + abs(lam[i, 2]) + abs(lam[i, 3])
+        for j in range(4):
+            if abs(lam[i, j]) <= CLIP_TOL * size:
+                lam[i, j] = 0.0
+
+
+@njit(inline="always")
 def _clip(lam, mu, vlab, elab):
     """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
 
@@ -143,11 +153,7 @@ def _clip(lam, mu, vlab, elab):
         Number n of polygon vertices (counter-clockwise in the parameter plane), 0 if the
         intersection is empty or has fewer than 3 vertices.
     """
-    for i in range(3):
-        size = 1.0 + abs(lam[i, 0]) + abs(lam[i, 1]) + abs(lam[i, 2]) + abs(lam[i, 3])
-        for j in range(4):
-            if abs(lam[i, j]) <= CLIP_TOL * size:
-                lam[i, j] = 0.0
+    _snap(lam)
     # quick rejection: a tetrahedron face plane separates the triangle
     for j in range(4):
         if lam[0, j] < 0.0 and lam[1, j] < 0.0 and lam[2, j] < 0.0:
@@ -216,6 +222,46 @@ def _clip(lam, mu, vlab, elab):
 
 
 @njit(inline="always")
+def _clip_nonempty(lam, buf):
+    """Whether `_clip` would return a polygon (n >= 3), without building it.
+
+    The same sign logic on ``lam`` (already snapped by the caller), but each vertex carries only
+    its four barycentric values, interpolated along clipped edges; no labels, no early copy.
+
+    Args:
+        lam: (3, 4) snapped barycentric coordinates of the triangle vertices.
+        buf: (2, MAX_POLYGON_VERTICES, 4) work buffer.
+    """
+    for i in range(3):
+        for j in range(4):
+            buf[0, i, j] = lam[i, j]
+    n = 3
+    cur = 0
+    for j in range(4):
+        nxt = 1 - cur
+        m = 0
+        Lp = buf[cur, 0, j]
+        for k in range(n):
+            k1 = k + 1 if k + 1 < n else 0
+            Lq = buf[cur, k1, j]
+            if Lp >= 0.0:
+                for r in range(4):
+                    buf[nxt, m, r] = buf[cur, k, r]
+                m += 1
+            if (Lp > 0.0 and Lq < 0.0) or (Lp < 0.0 and Lq > 0.0):
+                t = Lp / (Lp - Lq)
+                for r in range(4):
+                    buf[nxt, m, r] = buf[cur, k, r] + t * (buf[cur, k1, r] - buf[cur, k, r])
+                m += 1
+            Lp = Lq
+        if m < 3:
+            return False
+        n = m
+        cur = nxt
+    return True
+
+
+@njit(inline="always")
 def _polygon_area_ratio(mu, n):
     """Area of polygon ``mu[0, :n]`` divided by the area of the parameter simplex."""
     # shoelace in (mu_1, mu_2); the simplex has area 1/2 there
@@ -279,9 +325,7 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     lam = np.empty((3, 4), dtype=FLOAT)
     xt = np.empty((4, 3), dtype=FLOAT)
     xs = np.empty((3, 3), dtype=FLOAT)
-    mu = np.empty((2, MAX_POLYGON_VERTICES, 3), dtype=FLOAT)
-    vlab = np.empty((2, MAX_POLYGON_VERTICES, 2), dtype=np.int64)
-    elab = np.empty((2, MAX_POLYGON_VERTICES), dtype=np.int64)
+    buf = np.empty((2, MAX_POLYGON_VERTICES, 4), dtype=FLOAT)
     count = 0
     for p in range(pair_tri.shape[0]):
         out[p] = False
@@ -294,12 +338,20 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
         if _tet_gradients(xt, grads) == 0.0:
             continue
         _barycentric_rows(xs, xt, grads, lam)
-        # a triangle vertex strictly inside the tetrahedron settles it without clipping
+        _snap(lam)
+        # a tetrahedron face plane separating the triangle settles it without clipping, and
+        # so does a triangle vertex strictly inside the tetrahedron
+        separated = False
         inside = False
+        for j in range(4):
+            if lam[0, j] < 0.0 and lam[1, j] < 0.0 and lam[2, j] < 0.0:
+                separated = True
+        if separated:
+            continue
         for i in range(3):
             if lam[i, 0] > 0.0 and lam[i, 1] > 0.0 and lam[i, 2] > 0.0 and lam[i, 3] > 0.0:
                 inside = True
-        if inside or _clip(lam, mu, vlab, elab) >= 3:
+        if inside or _clip_nonempty(lam, buf):
             if _triangle_area2(xs) > 0.0:
                 out[p] = True
                 count += 1
