@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import gc
+import os
 
 from mpi4py import MPI
 
 import pytest
+from hypothesis import settings
+
+# Property tests draw the same examples on every run and every rank (a CI run must not pass or
+# fail by chance, and MPI ranks must agree); HYPOTHESIS_PROFILE=explore draws new ones.
+settings.register_profile("deterministic", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 
 @pytest.fixture(autouse=True)
