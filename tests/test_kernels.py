@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from fenics_matdepth.contact.kernels import (
     _area_pairs,
     _area_pairs_active,
+    _area_pairs_into,
     _collocation_pairs,
     collocation_energy,
     pair_energy,
@@ -447,6 +448,19 @@ def test_batch_drivers_match_single_pairs():
     np.testing.assert_array_equal(e_act, energy[active])
     np.testing.assert_array_equal(g_act, grad[active])
     np.testing.assert_array_equal(h_act, hess[active])
+
+    # preallocated compact output; too small a capacity reports the count needed
+    cap = len(active) + 3
+    out = (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, 21)), np.empty((cap, 21, 21)))
+    m = _area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *out)
+    assert m == len(active)
+    np.testing.assert_array_equal(out[0][:m], active)
+    np.testing.assert_array_equal(out[1][:m], e_act)
+    np.testing.assert_array_equal(out[2][:m], g_act)
+    np.testing.assert_array_equal(out[3][:m], h_act)
+    small = (np.empty(5, np.int64), np.empty(5), np.empty((5, 21)), np.empty((5, 21, 21)))
+    assert _area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *small) == m
+    np.testing.assert_array_equal(small[3], h_act[:5])
 
     weight = rng.uniform(size=nv)
     pair_node = rng.integers(0, nv, size=200)

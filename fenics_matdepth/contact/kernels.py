@@ -74,6 +74,7 @@ def _area_work():
         np.empty((3, 3), dtype=FLOAT),  # 18 W[i] = sum_j dPhi/dLam_ij grad lambda_j
         np.empty((9, 3), dtype=FLOAT),  # 19 dn[3 i + a] = d (triangle normal) / d x_ia
         np.empty(_NV, dtype=np.int64),  # 20 number of live columns per vertex
+        np.empty((5, 9), dtype=FLOAT),  # 21 gradients of the edge integrand's factors
     )
 
 
@@ -292,8 +293,8 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
         p: the output row.
 
     Returns:
-        The pair energy (0.0, with zero outputs, for an empty intersection, a flat tetrahedron
-        or a zero-area triangle).
+        The pair energy (>= 0), or -1.0 (with zero outputs) when the pair does not contribute:
+        empty intersection, flat tetrahedron or zero-area triangle.
     """
     (
         grads,
@@ -317,6 +318,7 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
         ww,
         dn,
         ncol,
+        zv,
     ) = work
     if want_grad:
         for c in range(21):
@@ -327,13 +329,13 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
                 hess[p, c, c2] = 0.0
     a2 = _triangle_area2(xs)
     if a2 == 0.0:
-        return 0.0
+        return -1.0
     if _tet_gradients(xt, grads) == 0.0:
-        return 0.0
+        return -1.0
     _barycentric_rows(xs, xt, grads, lam)
     n = _clip(lam, mu, vlab, elab)
     if n < 3:
-        return 0.0
+        return -1.0
     area = 0.5 * a2
     g0 = lam[0, 0] * dt[0] + lam[0, 1] * dt[1] + lam[0, 2] * dt[2] + lam[0, 3] * dt[3]
     g1 = lam[1, 0] * dt[0] + lam[1, 1] * dt[1] + lam[1, 2] * dt[2] + lam[1, 3] * dt[3]
@@ -391,21 +393,41 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
         if not want_hess:
             continue
         # Hessian of f over z = (p, q, G): Q hD + dD gQ^T + gQ dD^T + D (sum Qxy gx gy^T + ...)
-        gdd = (0.0, q2 / 12.0, -q1 / 12.0, 0.0, -p2 / 12.0, p1 / 12.0, 0.0, 0.0, 0.0)
-        gva = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0)
-        gvb = (g0, g1, g2, 0.0, 0.0, 0.0, p0, p1, p2)
-        gvc = (0.0, 0.0, 0.0, g0, g1, g2, q0, q1, q2)
+        # rows of zv over z: grad dd, grad qq, grad vb, grad vc, grad (va + vb + vc); grad va = e_6
+        for r in range(3):
+            zv[0, r] = 0.0
+            zv[2, r] = g0 if r == 0 else (g1 if r == 1 else g2)
+            zv[2, 3 + r] = 0.0
+            zv[3, r] = 0.0
+            zv[3, 3 + r] = zv[2, r]
+            zv[4, r] = zv[2, r]
+            zv[4, 3 + r] = zv[2, r]
+            zv[1, r] = qb * zv[2, r]
+            zv[1, 3 + r] = qc * zv[2, r]
+            zv[0, 6 + r] = 0.0
+            zv[2, 6 + r] = mu[0, k, r]
+            zv[3, 6 + r] = mu[0, k1, r]
+            zv[4, 6 + r] = mu[0, k, r] + mu[0, k1, r]
+            zv[1, 6 + r] = qb * mu[0, k, r] + qc * mu[0, k1, r]
+        zv[0, 1] = q2 / 12.0
+        zv[0, 2] = -q1 / 12.0
+        zv[0, 4] = -p2 / 12.0
+        zv[0, 5] = p1 / 12.0
+        zv[1, 6] += qa
+        zv[4, 6] += 1.0
         for r in range(9):
-            gq_r = qa * gva[r] + qb * gvb[r] + qc * gvc[r]
+            d0 = zv[0, r]
+            d1 = zv[1, r]
+            d2 = zv[2, r]
+            d3 = zv[3, r]
+            d4 = zv[4, r]
             for c in range(r, 9):
-                gq_c = qa * gva[c] + qb * gvb[c] + qc * gvc[c]
                 # qq has the Hessian I + 1 1^T in (va, vb, vc)
-                sa = gva[r] + gvb[r] + gvc[r]
-                sc = gva[c] + gvb[c] + gvc[c]
-                h2q = gva[r] * gva[c] + gvb[r] * gvb[c] + gvc[r] * gvc[c] + sa * sc
-                val = gdd[r] * gq_c + gq_r * gdd[c] + dd * h2q
+                val = d0 * zv[1, c] + d1 * zv[0, c]
+                val += dd * (d2 * zv[2, c] + d3 * zv[3, c] + d4 * zv[4, c])
                 hf[r, c] = val
                 hf[c, r] = val
+        hf[6, 6] += dd
         # vb = G . p and vc = G . q are bilinear
         for r in range(3):
             hf[r, 6 + r] += dd * qb
@@ -613,8 +635,69 @@ def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want
             dt[a] = depth[v]
             for r in range(3):
                 xt[a, r] = x[v, r]
-        energy[p] = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p)
+        e = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p)
+        energy[p] = max(e, 0.0)
     return energy, grad, hess
+
+
+@njit(cache=True)
+def _area_pairs_into(
+    x,
+    depth,
+    tri,
+    tet,
+    pair_tri,
+    pair_tet,
+    penalty,
+    want_grad,
+    want_hess,
+    active,
+    energy,
+    grad,
+    hess,
+):
+    """Like `_area_pairs`, but writes only the contributing pairs, compactly, into preallocated
+    arrays (reused across Newton iterations: no allocation, no page faults).
+
+    Args:
+        x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess: as `_area_pairs`.
+        active: (cap,) int output: index into the pair arrays of each written row.
+        energy: (cap,) output; grad: (cap, 21) output if want_grad (else any, untouched);
+            hess: (cap, 21, 21) output if want_hess (else any, untouched).
+
+    Returns:
+        The number m of contributing pairs (non-empty intersection); rows ``:min(m, cap)`` are
+        written. If m > cap, the rest were counted but not written: grow the arrays to m and
+        call again.
+    """
+    cap = active.shape[0]
+    if energy.shape[0] < cap or (want_grad and grad.shape[0] < cap):
+        raise ValueError("output arrays shorter than active")
+    if want_hess and hess.shape[0] < cap:
+        raise ValueError("output arrays shorter than active")
+    work = _area_work()
+    xs = np.empty((3, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    m = 0
+    for p in range(pair_tri.shape[0]):
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        for a in range(4):
+            v = tet[pair_tet[p], a]
+            dt[a] = depth[v]
+            for r in range(3):
+                xt[a, r] = x[v, r]
+        if m < cap:
+            e = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, m)
+            if e >= 0.0:
+                active[m] = p
+                energy[m] = e
+                m += 1
+        elif _area_pair(xs, xt, dt, penalty, False, False, work, grad, hess, 0) >= 0.0:
+            m += 1
+    return m
 
 
 @njit(cache=True)
