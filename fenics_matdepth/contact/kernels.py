@@ -396,6 +396,7 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
         # rows of zv over z: grad dd, grad qq, grad vb, grad vc, grad (va + vb + vc); grad va = e_6
         for r in range(3):
             zv[0, r] = 0.0
+            zv[0, 3 + r] = 0.0
             zv[2, r] = g0 if r == 0 else (g1 if r == 1 else g2)
             zv[2, 3 + r] = 0.0
             zv[3, r] = 0.0
