@@ -602,6 +602,73 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
 
 
 @njit(cache=True)
+def _area_pairs_core(
+    x,
+    depth,
+    tri,
+    tet,
+    pair_tri,
+    pair_tet,
+    penalty,
+    want_grad,
+    want_hess,
+    active,
+    energy,
+    grad,
+    hess,
+):
+    """The one loop over pairs behind `_area_pairs` and `_area_pairs_into` (a single compiled
+    copy of the pair kernel). With a non-empty ``active``, row m of the outputs is the m-th
+    contributing pair (``active[m]`` its index); with an empty one, row p is pair p.
+
+    Returns:
+        The number of contributing pairs.
+    """
+    # decided from the data, not passed as a constant: a literal argument would compile a
+    # second copy of this large function
+    compact = active.shape[0] > 0
+    cap = energy.shape[0]
+    work = _area_work()
+    xs = np.empty((3, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    m = 0
+    for p in range(pair_tri.shape[0]):
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        for a in range(4):
+            v = tet[pair_tet[p], a]
+            dt[a] = depth[v]
+            for r in range(3):
+                xt[a, r] = x[v, r]
+        row = m if compact else p
+        fits = row < cap
+        # a single call site: the kernel is inlined, a second call would double compile time
+        e = _area_pair(
+            xs,
+            xt,
+            dt,
+            penalty,
+            want_grad and fits,
+            want_hess and fits,
+            work,
+            grad,
+            hess,
+            row if fits else 0,
+        )
+        if e >= 0.0:
+            if fits:
+                energy[row] = e
+                if compact:
+                    active[row] = p
+            m += 1
+        elif fits and not compact:
+            energy[row] = 0.0
+    return m
+
+
+@njit(cache=True)
 def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
     """Area-integration energies of many (triangle, tetrahedron) pairs.
 
@@ -623,21 +690,22 @@ def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want
     energy = np.zeros(npairs, dtype=FLOAT)
     grad = np.zeros((npairs if want_grad else 0, 21), dtype=FLOAT)
     hess = np.zeros((npairs if want_hess else 0, 21, 21), dtype=FLOAT)
-    work = _area_work()
-    xs = np.empty((3, 3), dtype=FLOAT)
-    xt = np.empty((4, 3), dtype=FLOAT)
-    dt = np.empty(4, dtype=FLOAT)
-    for p in range(npairs):
-        for a in range(3):
-            for r in range(3):
-                xs[a, r] = x[tri[pair_tri[p], a], r]
-        for a in range(4):
-            v = tet[pair_tet[p], a]
-            dt[a] = depth[v]
-            for r in range(3):
-                xt[a, r] = x[v, r]
-        e = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p)
-        energy[p] = max(e, 0.0)
+    active = np.empty(0, dtype=INDEX)
+    _area_pairs_core(
+        x,
+        depth,
+        tri,
+        tet,
+        pair_tri,
+        pair_tet,
+        penalty,
+        want_grad,
+        want_hess,
+        active,
+        energy,
+        grad,
+        hess,
+    )
     return energy, grad, hess
 
 
@@ -672,33 +740,25 @@ def _area_pairs_into(
         call again.
     """
     cap = active.shape[0]
-    if energy.shape[0] < cap or (want_grad and grad.shape[0] < cap):
+    if energy.shape[0] != cap or (want_grad and grad.shape[0] < cap):
         raise ValueError("output arrays shorter than active")
     if want_hess and hess.shape[0] < cap:
         raise ValueError("output arrays shorter than active")
-    work = _area_work()
-    xs = np.empty((3, 3), dtype=FLOAT)
-    xt = np.empty((4, 3), dtype=FLOAT)
-    dt = np.empty(4, dtype=FLOAT)
-    m = 0
-    for p in range(pair_tri.shape[0]):
-        for a in range(3):
-            for r in range(3):
-                xs[a, r] = x[tri[pair_tri[p], a], r]
-        for a in range(4):
-            v = tet[pair_tet[p], a]
-            dt[a] = depth[v]
-            for r in range(3):
-                xt[a, r] = x[v, r]
-        if m < cap:
-            e = _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, m)
-            if e >= 0.0:
-                active[m] = p
-                energy[m] = e
-                m += 1
-        elif _area_pair(xs, xt, dt, penalty, False, False, work, grad, hess, 0) >= 0.0:
-            m += 1
-    return m
+    return _area_pairs_core(
+        x,
+        depth,
+        tri,
+        tet,
+        pair_tri,
+        pair_tet,
+        penalty,
+        want_grad,
+        want_hess,
+        active,
+        energy,
+        grad,
+        hess,
+    )
 
 
 @njit(cache=True)
