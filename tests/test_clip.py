@@ -11,10 +11,10 @@ from hypothesis import strategies as st
 
 from fenics_matdepth.geometry.clip import CLIP_TOL, _intersect_pairs, intersection_polygon
 
-# Float clipping works on barycentric values with a band of CLIP_TOL around each face and on
-# barycentrics computed in floating point (error ~ 1e-15 times the tetrahedron's condition
-# number, at most ~1e3 for the configurations drawn here): the area error is a few CLIP_TOL times
-# the triangle area, far below this relative tolerance.
+# Float clipping works on barycentrics computed in floating point (error ~ 1e-16 times the
+# tetrahedron's condition number, at most ~1e3 for the configurations drawn here; values within
+# CLIP_TOL of zero are snapped to zero): on configurations that are not near-coplanar the area
+# error is a few times 1e-13 of the triangle area, far below this relative tolerance.
 AREA_RTOL = 1e-9
 
 
