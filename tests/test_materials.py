@@ -35,6 +35,10 @@ MODELS = list(PARAMETERS)
 E1 = np.array([1.0, 0.0, 0.0])
 
 
+# The material laws are pointwise formulas evaluated on COMM_SELF: one process says it all.
+pytestmark = pytest.mark.serial
+
+
 # --- Independent NumPy reference (complex-step differentiable) ----------------------------
 
 
