@@ -117,15 +117,6 @@ def bench_pairs():
     t_q, _ = best_of(lambda: tree.query_boxes(lo, hi), 3)
     t_f, _ = best_of(lambda: exclude_shared_vertex_pairs(tri, tets, q, e), 3)
     print(f"  of which: tree query {t_q:.4f} s, shared-vertex filter {t_f:.4f} s")
-    tree.candidate_pairs(tri[:10])  # warm-up
-    t_fused, (ft, _) = best_of(lambda: tree.candidate_pairs(tri), 3)
-    report(
-        "candidate pairs, fused (AABBTree.candidate_pairs)",
-        t_fused,
-        TARGET_PAIRS_100K_TRI_1M_TETS,
-        scale,
-        f"{ft.size} pairs",
-    )
 
 
 def box_surface_triangles(n):

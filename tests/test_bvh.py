@@ -239,25 +239,3 @@ def test_exclude_shared_vertex_pairs():
     ]
     assert list(zip(kt.tolist(), kk.tolist(), strict=True)) == expected
     assert 0 < len(expected) < q.size  # both kinds of pairs were present
-
-
-@pytest.mark.parametrize("margin", [0.0, 0.02])
-def test_candidate_pairs_fused(margin):
-    """The one-pass candidate search equals box query + shared-vertex filter (brute force)."""
-    rng = np.random.default_rng(9)
-    x, tets = _jittered_box_tets(4, rng)
-    tri = tets[rng.integers(0, len(tets), 150)][:, 1:]
-    tree = AABBTree(x, tets)
-    y = x + rng.normal(scale=0.03, size=x.shape)
-    tree.refit(y)
-    t, k = tree.candidate_pairs(tri, margin=margin)
-    blo, bhi = element_boxes(y, tets)
-    tlo, thi = element_boxes(y, tri)
-    expected = {
-        (a, b)
-        for a, b in _overlap_bruteforce(tlo, thi, blo, bhi, margin)
-        if not set(tri[a].tolist()) & set(tets[b].tolist())
-    }
-    got = list(zip(t.tolist(), k.tolist(), strict=True))
-    assert len(got) == len(set(got))
-    assert set(got) == expected and len(expected) > 0

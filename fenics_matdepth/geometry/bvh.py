@@ -400,78 +400,6 @@ def _query_boxes(qbox, margin, order, node_start, node_count, node_right, elem_b
 
 
 @njit(cache=True)
-def _candidate_pairs(
-    points,
-    tri_cells,
-    margin,
-    order,
-    cells_sorted,
-    node_start,
-    node_count,
-    node_right,
-    elem_box,
-    node_box,
-):
-    """(triangle, element) pairs with overlapping boxes that share no vertex, in one pass.
-
-    The triangle boxes (inflated by ``margin``) come from ``points`` and ``tri_cells``, which
-    use the same vertex numbering as the tree's elements. Fusing the shared-vertex filter into
-    the traversal avoids writing the many incident pairs only to drop them again.
-
-    Returns:
-        (triangle index (m,), original element index (m,)), grouped by triangle.
-    """
-    nt = tri_cells.shape[0]
-    k = cells_sorted.shape[1]
-    out_q = np.empty(max(16, 8 * nt), dtype=np.int64)
-    out_e = np.empty(max(16, 8 * nt), dtype=np.int64)
-    m = 0
-    if node_start.shape[0] == 0:
-        return out_q[:0], out_e[:0]
-    stack = np.empty(_STACK_SIZE, dtype=np.int64)
-    tbox = np.empty((1, 6), dtype=points.dtype)
-    for t in range(nt):
-        v0 = tri_cells[t, 0]
-        v1 = tri_cells[t, 1]
-        v2 = tri_cells[t, 2]
-        for d in range(3):
-            a = points[v0, d]
-            b = points[v1, d]
-            c = points[v2, d]
-            tbox[0, d] = min(a, min(b, c))
-            tbox[0, d + 3] = max(a, max(b, c))
-        if not _rows_overlap(tbox, 0, node_box, 0, margin):
-            continue
-        stack[0] = 0
-        top = 1
-        while top > 0:
-            top -= 1
-            i = stack[top]
-            r = node_right[i]
-            if r < 0:
-                s = node_start[i]
-                for e in range(s, s + node_count[i]):
-                    if not _rows_overlap(tbox, 0, elem_box, e, margin):
-                        continue
-                    shared = False
-                    for j in range(k):
-                        w = cells_sorted[e, j]
-                        if w == v0 or w == v1 or w == v2:
-                            shared = True
-                    if not shared:
-                        out_q, out_e = _push_pair(out_q, out_e, m, t, order[e])
-                        m += 1
-            else:
-                if _rows_overlap(tbox, 0, node_box, r, margin):
-                    stack[top] = r
-                    top += 1
-                if _rows_overlap(tbox, 0, node_box, i + 1, margin):
-                    stack[top] = i + 1
-                    top += 1
-    return out_q[:m].copy(), out_e[:m].copy()
-
-
-@njit(cache=True)
 def _nearest_triangle(points, x, order, cells_sorted, node_start, node_count, node_right, node_box):
     """Nearest triangle (tree over triangles) to each point, with exact distance.
 
@@ -774,42 +702,6 @@ class AABBTree:
             qbox,
             float(margin),
             self._order,
-            self._node_start,
-            self._node_count,
-            self._node_right,
-            self._elem_box,
-            self._node_box,
-        )
-
-    def candidate_pairs(
-        self, tri_cells: np.ndarray, margin: float = 0.0
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Contact candidates: (triangle, element) pairs with overlapping boxes, no shared vertex.
-
-        Equivalent to ``query_boxes`` on the triangle boxes followed by
-        :func:`exclude_shared_vertex_pairs`, in one pass. Uses the tree's current vertex
-        positions (those of the last build or refit).
-
-        Args:
-            tri_cells: (nt, 3) triangle vertex indices, same numbering as the tree's points.
-            margin: inflation of the triangle boxes (L), >= 0.
-
-        Returns:
-            (triangle index (m,), element index (m,)), int64, grouped by triangle.
-        """
-        tri = np.ascontiguousarray(tri_cells, dtype=INDEX)
-        if tri.ndim != 2 or tri.shape[1] != 3:
-            raise ValueError(f"tri_cells must have shape (nt, 3), got {tri.shape}")
-        if tri.size and (tri.min() < 0 or tri.max() >= self._points.shape[0]):
-            raise ValueError("tri_cells reference vertices outside the tree's points")
-        if margin < 0.0:
-            raise ValueError(f"margin must be >= 0, got {margin}")
-        return _candidate_pairs(
-            self._points,
-            tri,
-            float(margin),
-            self._order,
-            self._cells_sorted,
             self._node_start,
             self._node_count,
             self._node_right,
