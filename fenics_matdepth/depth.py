@@ -24,7 +24,7 @@ from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.bvh import AABBTree
 
-__all__ = ["boundary_triangles", "distance_to_triangles", "material_depth"]
+__all__ = ["boundary_triangles", "distance_to_triangles", "material_depth", "owned_exterior_facets"]
 
 #: Bits per axis of the Morton (Z-order) key used to sort query points: 2**10 cells per axis
 #: is enough for consecutive points to be near each other, which is all the sort is for.
@@ -110,6 +110,19 @@ def _check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
         )
 
 
+def owned_exterior_facets(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """Local indices of the exterior facets (one cell in the whole mesh) this rank owns.
+
+    Every exterior facet is owned by exactly one rank, so each boundary triangle is handled
+    once across the ranks.
+    """
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    facets = np.asarray(dolfinx.mesh.exterior_facet_indices(mesh.topology), dtype=np.int32)
+    # exterior_facet_indices returns owned facets; keep only those in case a version adds ghosts.
+    return facets[facets < mesh.topology.index_map(tdim - 1).size_local]
+
+
 def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     """Vertex coordinates of all exterior boundary triangles of the mesh, on every rank.
 
@@ -125,13 +138,7 @@ def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     """
     _check_mesh(mesh)
     tdim = mesh.topology.dim
-    mesh.topology.create_connectivity(tdim - 1, tdim)
-    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
-    # exterior_facet_indices returns owned facets; keep only those in case a version adds
-    # ghosts, so every triangle is gathered exactly once.
-    n_owned = mesh.topology.index_map(tdim - 1).size_local
-    facets = np.asarray(facets, dtype=np.int32)
-    facets = facets[facets < n_owned]
+    facets = owned_exterior_facets(mesh)
     nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets, False)
     local = np.ascontiguousarray(mesh.geometry.x[np.asarray(nodes).reshape(-1, 3)], dtype=FLOAT)
     local = local.reshape(-1, 9)

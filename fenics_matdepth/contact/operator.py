@@ -30,7 +30,7 @@ import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import _area_pairs_active, _collocation_pairs
-from fenics_matdepth.depth import _check_mesh, _p1_dof_coordinates
+from fenics_matdepth.depth import _check_mesh, _p1_dof_coordinates, owned_exterior_facets
 from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
 __all__ = ["ContactOperator"]
@@ -118,21 +118,16 @@ class ContactOperator:
         n_cells_owned = mesh.topology.index_map(3).size_local
         self._tets = _allgather_rows(self.comm, self._local_to_global[cells[:n_cells_owned]])
 
-        # Owned exterior facets -> triangles (the three cell vertices other than the opposite
-        # one; the reference tetrahedron's facet i is opposite vertex i).
-        tdim = 3
-        mesh.topology.create_connectivity(tdim - 1, tdim)
-        mesh.topology.create_connectivity(tdim, tdim - 1)
-        facets = np.asarray(dolfinx.mesh.exterior_facet_indices(mesh.topology), dtype=np.int32)
-        facets = facets[facets < mesh.topology.index_map(tdim - 1).size_local]
-        f2c = mesh.topology.connectivity(tdim - 1, tdim)
-        c2f = mesh.topology.connectivity(tdim, tdim - 1)
-        tri = np.empty((facets.size, 3), dtype=INDEX)
+        # Owned exterior facets -> triangles: the three vertices of the facet's (single) cell
+        # other than the opposite one (the reference tetrahedron's facet i is opposite vertex i).
+        facets = owned_exterior_facets(mesh)
+        mesh.topology.create_connectivity(3, 2)
+        f2c = mesh.topology.connectivity(2, 3)
+        c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
+        cell = np.asarray(f2c.array)[np.asarray(f2c.offsets)[facets]]
+        opposite = np.argmax(c2f[cell] == facets[:, None], axis=1)
         others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-        for k, f in enumerate(facets):  # set-up only, once per operator
-            c = f2c.links(f)[0]
-            i = int(np.flatnonzero(c2f.links(c) == f)[0])
-            tri[k] = cells[c, others[i]]
+        tri = cells[cell[:, None], others[opposite]]
         self._tri = self._local_to_global[tri]
         # Collocation: owned boundary vertices with weight = 1/3 of the adjacent boundary area
         # in the reference configuration (kept constant, as the kernel's derivatives assume).
@@ -343,9 +338,9 @@ class ContactOperator:
         self._pattern_keys = self._vertex_coupling_keys(verts)
         vi = self._pattern_keys // self.num_vertices
         vj = self._pattern_keys % self.num_vertices
-        comp = np.arange(3)
-        rows = (3 * vi[:, None, None] + comp[:, None] + 0 * comp).ravel()
-        cols = (3 * vj[:, None, None] + 0 * comp[:, None] + comp).ravel()
+        # Each vertex coupling (vi, vj) is a 3 x 3 block of dofs.
+        rows = np.repeat(3 * vi[:, None] + np.arange(3), 3, axis=1).ravel()
+        cols = np.tile(3 * vj[:, None] + np.arange(3), (1, 3)).ravel()
 
         # Send each contact entry to the rank owning its row.
         ranges = np.asarray(self.comm.allgather(r1), dtype=INDEX)
