@@ -12,17 +12,27 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from fenics_matdepth import contact, geometry, materials
-from fenics_matdepth.contact.operator import ContactOperator
+from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import material_depth
-from fenics_matdepth.solvers import ContactProblem, SolveResult
+from fenics_matdepth.solvers import (
+    ContactProblem,
+    LoadStep,
+    NonlinearContactProblem,
+    SolveResult,
+    solve_load_steps,
+)
 
 __all__ = [
     "ContactOperator",
     "ContactProblem",
+    "LoadStep",
+    "NonlinearContactProblem",
     "SolveResult",
     "__version__",
     "contact",
     "geometry",
     "material_depth",
     "materials",
+    "propose_penalty",
+    "solve_load_steps",
 ]

@@ -139,3 +139,84 @@ def test_bad_input_is_named():
         ContactOperator(dolfinx.fem.Function(V), d, penalty=-1.0)
     with pytest.raises(ValueError, match="integration"):
         ContactOperator(dolfinx.fem.Function(V), d, penalty=1.0, integration="nodes")
+
+
+@pytest.mark.parametrize("integration", ["area", "collocation"])
+def test_max_penetration_of_sunk_block(integration):
+    """A box resting on a larger one is moved 0.2 down into it. The lower box's depth is at
+    most the (affine) distance to its top face, and equals it under the middle of that face,
+    which the upper box covers; the upper box's depth is at most the distance to its bottom
+    face. So the deepest point reached is exactly 0.2 (also for the collocation nodes: the
+    upper box has a bottom vertex above the middle)."""
+    xa, ca = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    xb, cb = _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0))
+    cells = np.vstack((ca, cb + xa.shape[0]))
+    mesh = create_tetrahedral_mesh(MPI.COMM_WORLD, cells, np.vstack((xa, xb)))
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    depth = fm.material_depth(mesh)
+    op = ContactOperator(u, depth, penalty=1.0, integration=integration)
+    upper = op.body_of_vertex[np.argmax(op._X[:, 2])]
+    n_owned = V.dofmap.index_map.size_local
+    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
+    uz = u.x.array[: 3 * n_owned].reshape(-1, 3)[:, 2]
+    # the plane z = 1 holds vertices of both boxes: select the upper box's by body
+    uz[:] = np.where(op.body_of_vertex[glob] == upper, -0.2, 0.0)
+    u.x.scatter_forward()
+    op.update()
+    assert np.isclose(op.max_penetration(), 0.2, rtol=1e-12, atol=0.0)
+
+
+def test_force_resultants_are_opposite_and_match_rigid_translation():
+    """Net contact force on each body: the two bodies' are opposite (action = reaction), and
+    the upper body's equals -dE/dt for a rigid translation t of that body (central differences
+    of the energy, an independent computation)."""
+    comm = MPI.COMM_WORLD
+    _, V, u, op = _setup(comm, "area")
+    res = op.force_resultants()
+    assert res.shape == (2, 3) and op.num_bodies == 2
+    assert np.abs(res[0] + res[1]).max() <= 1e-12 * np.abs(res).max()
+    # the body holding the vertex with the largest reference z is the upper one
+    n_owned = V.dofmap.index_map.size_local
+    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
+    body = op.body_of_vertex[glob]
+    upper = op.body_of_vertex[np.argmax(op._X[:, 2])]
+    assert res[upper, 2] > 0.0  # pushed up, out of the lower body
+    u0 = u.x.array.copy()
+    h = 1e-6
+    for c in range(3):
+        energies = []
+        for t in (h, -h):
+            u.x.array[:] = u0
+            u.x.array[: 3 * n_owned].reshape(-1, 3)[body == upper, c] += t
+            u.x.scatter_forward()
+            op.update()
+            energies.append(op.energy())
+        fd = -(energies[0] - energies[1]) / (2 * h)
+        assert abs(fd - res[upper, c]) <= 1e-6 * np.abs(res).max(), (c, fd, res[upper, c])
+
+
+def test_diagnostics_and_unchanged_state():
+    comm = MPI.COMM_WORLD
+    _, _, u, op = _setup(comm, "area")
+    d = op.diagnostics()
+    assert d["active_pairs"] > 0 and d["candidate_pairs"] >= d["active_pairs"]
+    assert d["energy"] == op.energy() and d["max_penetration"] == op.max_penetration()
+    assert np.array_equal(d["force_resultant"], op.force_resultants())
+    # an update at the same u keeps the evaluated pairs; a changed u recomputes them
+    cached = op._evaluate(True, True)
+    op.update()
+    assert op._evaluate(False, False) is cached
+    u.x.array[:] *= 1.01
+    op.update()
+    assert op._evaluate(False, False) is not cached
+
+
+def test_propose_penalty():
+    """eps = factor * modulus / h, h the median boundary edge: for a Kuhn-split box of n = 3
+    cells per side every boundary triangle has two axis edges (1/3) and one diagonal."""
+    mesh = create_tetrahedral_mesh(MPI.COMM_WORLD, *_box_tets(3, (0, 0, 0), (1, 1, 1))[::-1])
+    assert np.isclose(fm.propose_penalty(mesh, 2.0, factor=10.0), 10.0 * 2.0 * 3.0, rtol=1e-12)
+    assert fm.propose_penalty(mesh, 2.0, factor=10.0, h=0.5) == 40.0
+    with pytest.raises(ValueError, match="positive"):
+        fm.propose_penalty(mesh, -1.0)

@@ -783,6 +783,52 @@ def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_gra
     return active, energy, grad, hess
 
 
+@njit(cache=True)
+def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
+    """Largest material depth ``g_K`` reached on each pair's intersection polygon (length).
+
+    ``g_K`` is affine on the polygon, so its maximum is at a polygon vertex. Pairs whose
+    intersection is empty get 0.
+
+    Args:
+        x, depth, tri, tet, pair_tri, pair_tet: as `_area_pairs`.
+
+    Returns:
+        (np,) maximum depth per pair.
+    """
+    out = np.zeros(pair_tri.shape[0], dtype=FLOAT)
+    grads = np.empty((4, 3), dtype=FLOAT)
+    lam = np.empty((3, 4), dtype=FLOAT)
+    xs = np.empty((3, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    mu = np.empty((2, _NV, 3), dtype=FLOAT)
+    vlab = np.empty((2, _NV, 2), dtype=INDEX)
+    elab = np.empty((2, _NV), dtype=INDEX)
+    gi = np.empty(3, dtype=FLOAT)
+    for p in range(pair_tri.shape[0]):
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        for a in range(4):
+            for r in range(3):
+                xt[a, r] = x[tet[pair_tet[p], a], r]
+        if _tet_gradients(xt, grads) == 0.0 or _triangle_area2(xs) == 0.0:
+            continue
+        _barycentric_rows(xs, xt, grads, lam)
+        n = _clip(lam, mu, vlab, elab)
+        # depth at the triangle corners, extended affinely over the parameter simplex
+        for i in range(3):
+            gi[i] = 0.0
+            for j in range(4):
+                gi[i] += lam[i, j] * depth[tet[pair_tet[p], j]]
+        best = 0.0
+        for k in range(n):
+            g = mu[0, k, 0] * gi[0] + mu[0, k, 1] * gi[1] + mu[0, k, 2] * gi[2]
+            best = max(best, g)
+        out[p] = best
+    return out
+
+
 @njit(inline="always")
 def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess, p):
     """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).

@@ -29,11 +29,15 @@ import dolfinx
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth.contact.kernels import _area_pairs_active, _collocation_pairs
+from fenics_matdepth.contact.kernels import (
+    _area_pairs_active,
+    _area_pairs_max_depth,
+    _collocation_pairs,
+)
 from fenics_matdepth.depth import _check_mesh, _p1_dof_coordinates, owned_exterior_facets
 from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
-__all__ = ["ContactOperator"]
+__all__ = ["ContactOperator", "propose_penalty"]
 
 _INTEGRATIONS = ("area", "collocation")
 
@@ -149,8 +153,12 @@ class ContactOperator:
             margin = 0.1 * float(np.mean(np.linalg.norm(edges, axis=2))) if all_tri.size else 0.0
         self.margin = float(margin)
 
+        # Bodies: connected components of the mesh (vertices linked through tetrahedra).
+        self.num_bodies, self.body_of_vertex = _connected_components(self.num_vertices, self._tets)
+
         self._bc_mask = np.zeros(3 * self.num_vertices, dtype=bool)
         self._x = self._X.copy()
+        self._u_last: np.ndarray | None = None
         self._tree = AABBTree(self._x, self._tets)
         self._pair_a = np.empty(0, dtype=INDEX)
         self._pair_k = np.empty(0, dtype=INDEX)
@@ -176,12 +184,22 @@ class ContactOperator:
         return qa[keep], qk[keep]
 
     def update(self) -> None:
-        """Refit the tree to the current ``u`` and find the candidate pairs (collective)."""
-        if not np.all(np.isfinite(self.u.x.array)):
+        """Refit the tree to the current ``u`` and find the candidate pairs (collective).
+
+        Nothing is recomputed when ``u`` has not changed since the last update (a line search
+        evaluating the energy and then the residual at the same point pays once).
+        """
+        u_owned = self.u.x.array[: 3 * self._n_owned]
+        bad = not np.all(np.isfinite(u_owned))
+        if self.comm.allreduce(bad, op=MPI.LOR):
             raise FloatingPointError(
                 "the displacement contains NaN or inf: the previous solve diverged; reduce "
                 "the load step or the penalty"
             )
+        same = self._u_last is not None and np.array_equal(u_owned, self._u_last)
+        if self.comm.allreduce(same, op=MPI.LAND):
+            return
+        self._u_last = u_owned.copy()
         self._x = self._current_coordinates()
         self._tree.refit(self._x)
         if self._tree.needs_rebuild():
@@ -192,10 +210,12 @@ class ContactOperator:
     # -- pair contributions ---------------------------------------------------------------
 
     def _evaluate(self, want_grad: bool, want_hess: bool) -> dict[str, np.ndarray]:
-        want_grad = want_grad or want_hess  # one pass gives both; Newton wants both anyway
+        want_grad = want_grad or want_hess  # the kernels compute the Hessian with the gradient
         key = f"{want_grad}{want_hess}"
-        if key in self._cache:
-            return self._cache[key]
+        # a pass that computed more serves a request for less
+        for have in ("TrueTrue", "TrueFalse", "FalseFalse")[: 3 - want_grad - want_hess]:
+            if have in self._cache:
+                return self._cache[have]
         if self.integration == "area":
             active, energy, grad, hess = _area_pairs_active(
                 self._x, self._depth, self._tri, self._tets, self._pair_a, self._pair_k,
@@ -210,6 +230,8 @@ class ContactOperator:
             verts = np.hstack((self._nodes[self._pair_a, None], self._tets[self._pair_k]))
         dofs = (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], -1)
         out = {"energy": energy, "grad": grad, "hess": hess, "dofs": dofs, "verts": verts}
+        if self.integration == "area":
+            out["active"] = active
         self._cache[key] = out
         return out
 
@@ -372,9 +394,101 @@ class ContactOperator:
 
     # -- diagnostics ------------------------------------------------------------------------
 
-    def diagnostics(self) -> dict[str, float]:
-        """Numbers of candidate and active pairs, maximum penetration and force resultant."""
+    def max_penetration(self) -> float:
+        """Largest material depth reached by the contact surface at the last update (L).
+
+        Area integration: the maximum of ``g_K`` over every intersection polygon; collocation:
+        the maximum of ``g_K(x_a)`` over the boundary vertices inside a tetrahedron
+        (collective).
+        """
+        r = self._evaluate(False, False)
+        if self.integration == "area":
+            active = r["active"]
+            g = _area_pairs_max_depth(
+                self._x, self._depth, self._tri, self._tets, self._pair_a[active],
+                self._pair_k[active],
+            )  # fmt: skip
+        else:
+            w = self._weight[self._nodes[self._pair_a]]
+            g = np.sqrt(2.0 * r["energy"] / (self.penalty * w))
+        local = float(g.max()) if g.size else 0.0
+        return self.comm.allreduce(local, op=MPI.MAX)
+
+    def force_resultants(self) -> np.ndarray:
+        """Net contact force on each body, ``(num_bodies, 3)`` (force units; collective).
+
+        A body is a connected component of the mesh (``body_of_vertex``). The force on a
+        vertex is ``-dE/dx``; contact between two bodies gives them opposite resultants, and
+        self-contact contributes nothing to its body's resultant.
+        """
+        dofs, vals = self.gradient_array()
+        out = np.zeros((self.num_bodies, 3), dtype=FLOAT)
+        np.add.at(out, (self.body_of_vertex[dofs // 3], dofs % 3), -vals)
+        return self.comm.allreduce(out)
+
+    def diagnostics(self) -> dict[str, typing.Any]:
+        """Contact state at the last update (collective).
+
+        Returns:
+            ``candidate_pairs`` and ``active_pairs`` (global counts; active = non-zero
+            energy), ``energy`` (F L), ``max_penetration`` (L, see :meth:`max_penetration`)
+            and ``force_resultant``, the net contact force on each body, ``(num_bodies, 3)``.
+        """
         r = self._evaluate(True, False)
-        n_cand = self.comm.allreduce(int(self._pair_a.size))
-        n_act = self.comm.allreduce(int(np.count_nonzero(r["energy"] > 0.0)))
-        return {"candidate_pairs": n_cand, "active_pairs": n_act, "energy": self.energy()}
+        return {
+            "candidate_pairs": self.comm.allreduce(int(self._pair_a.size)),
+            "active_pairs": self.comm.allreduce(int(np.count_nonzero(r["energy"] > 0.0))),
+            "energy": self.energy(),
+            "max_penetration": self.max_penetration(),
+            "force_resultant": self.force_resultants(),
+        }
+
+
+def _connected_components(num_vertices: int, tets: np.ndarray) -> tuple[int, np.ndarray]:
+    """Label the vertices by connected component of the tetrahedral mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    a = np.repeat(tets[:, 0], 3)
+    b = tets[:, 1:].ravel()
+    graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(num_vertices,) * 2)
+    n, labels = connected_components(graph, directed=False)
+    return int(n), labels.astype(INDEX)
+
+
+def propose_penalty(
+    mesh: dolfinx.mesh.Mesh, modulus: float, factor: float = 10.0, h: float | None = None
+) -> float:
+    """A penalty parameter eps (pressure / length) from the stiffest modulus and the mesh size.
+
+    ``eps = factor * modulus / h``. A contact pressure p then penetrates ``g = p / eps =
+    (p / modulus) h / factor``: the penetration is ``1 / factor`` of the compression that
+    pressure causes across one element of size ``h``, and the contact stiffness of a surface
+    vertex (about ``eps h^2``) is ``factor`` times the stiffness of its element (about
+    ``modulus h``). Larger factors reduce penetration but worsen conditioning; 10 to 100
+    suits the Newton solver with a direct linear solver.
+
+    Args:
+        mesh: the tetrahedral mesh of the bodies.
+        modulus: the stiffest small-strain modulus of the materials in contact (pressure), e.g.
+            ``materials.small_strain_moduli(...).stiffest`` or Young's modulus.
+        factor: the ratio above (dimensionless).
+        h: mesh size (L); default: the median edge length of the exterior boundary triangles,
+            the elements that meet in contact.
+
+    Returns:
+        The proposed penalty (collective).
+    """
+    from fenics_matdepth.depth import boundary_triangles
+
+    modulus, factor = float(modulus), float(factor)
+    if not (np.isfinite(modulus) and modulus > 0.0 and np.isfinite(factor) and factor > 0.0):
+        raise ValueError(
+            f"modulus and factor must be positive numbers, got modulus={modulus}, factor={factor}"
+        )
+    if h is None:
+        x = boundary_triangles(mesh)  # gathered on every rank
+        if x.shape[0] == 0:
+            raise ValueError("the mesh has no exterior boundary triangles")
+        h = float(np.median(np.linalg.norm(x[:, [1, 2, 0]] - x, axis=2)))
+    return factor * modulus / float(h)
