@@ -9,6 +9,7 @@ import dolfinx
 
 __all__ = [
     "DOLFINX_VERSION",
+    "NewtonSolverProblemBase",
     "create_tetrahedral_mesh",
     "geometry_cmap",
     "geometry_dofmap",
@@ -19,6 +20,19 @@ __all__ = [
 #: (major, minor) of the DOLFINx in use.
 DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
 
+
+def _newton_problem_base():
+    import dolfinx.fem.petsc
+
+    # 0.10 renamed the NewtonSolver's problem class (NonlinearProblem became the SNES wrapper)
+    if DOLFINX_VERSION >= (0, 10):
+        return dolfinx.fem.petsc.NewtonSolverNonlinearProblem
+    return dolfinx.fem.petsc.NonlinearProblem
+
+
+#: The problem class that ``dolfinx.nls.petsc.NewtonSolver`` drives: ``NonlinearProblem`` on
+#: DOLFINx 0.9, ``NewtonSolverNonlinearProblem`` from 0.10 on (same methods: F, J, form).
+NewtonSolverProblemBase = _newton_problem_base()
 
 #: Newton defaults of :func:`solve_nonlinear`: full steps, direct solve with MUMPS (works in
 #: serial and in parallel), tight tolerances.
