@@ -49,6 +49,10 @@ _DEFAULT_OPTIONS = {
     "pc_factor_mat_solver_type": "mumps",
 }
 
+#: A Newton iteration that changes the residual norm by less than this (relative) has
+#: stalled (see ContactProblem._start_iteration).
+STALL_RTOL = 1e-8
+
 #: Names of the per-solve time split (seconds) kept in ``ContactProblem.timings``.
 TIMING_KEYS = ("bulk_assembly", "contact_update", "contact_assembly", "linear_solve")
 
@@ -135,7 +139,8 @@ class ContactProblem:
         J: Jacobian form; default ``ufl.derivative(F, u)``.
         energy: optional UFL energy functional whose derivative is ``F``; when given, the
             backtracking line search works on the total energy (bulk + contact) instead of the
-            residual norm.
+            residual norm, until the energy's rounding noise stalls it near the solution (then
+            on the residual norm; see ``_start_iteration``).
         petsc_options_prefix: prefix of this problem's PETSc options.
         petsc_options: options set under the prefix (defaults: newtonls, bt line search, LU with
             MUMPS, rtol 1e-10, atol 1e-12, at most 50 iterations).
@@ -178,6 +183,7 @@ class ContactProblem:
         # Ghosted, as dolfinx's assembly and lifting read and write ghost entries.
         self._b = u.x.petsc_vec.duplicate()
         self._x = u.x.petsc_vec.duplicate()
+        self._b_trial = u.x.petsc_vec.duplicate()
         self.snes = PETSc.SNES().create(comm)
         self.snes.setOptionsPrefix(self.prefix)
         opts = PETSc.Options()
@@ -190,6 +196,7 @@ class ContactProblem:
         self.snes.setUpdate(self._start_iteration)
         if self._energy is not None:
             self.snes.setObjective(self._objective)
+        self._merit_is_energy = True
         self.snes.setFromOptions()
         ksp = self.snes.getKSP()
         ksp.setFromOptions()
@@ -214,6 +221,9 @@ class ContactProblem:
         _assemble_jacobian(A, self._J, self.bcs, self.contact, self._watch)
 
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
+        if not self._merit_is_energy:
+            self._residual(snes, x, self._b_trial)
+            return 0.5 * self._b_trial.norm() ** 2
         self._set_state(x)
         comm = self.u.function_space.mesh.comm
         with self._watch("bulk_assembly"):
@@ -222,7 +232,20 @@ class ContactProblem:
             return bulk + self.contact.energy()
 
     def _start_iteration(self, snes: PETSc.SNES, iteration: int) -> None:
-        """Before each Newton step's Jacobian: rebuild the matrix if contact left its pattern."""
+        """Before each Newton step's Jacobian: switch the line search's merit function if the
+        energy stalled; rebuild the matrix if contact left its pattern.
+
+        Near the solution a Newton step changes the energy by about ``r^2 / k`` (r the
+        residual, k a stiffness), which falls below the energy's rounding error (relative to
+        the stress scale, not to the energy, which may be near zero) while r is still well
+        above the tolerance; the energy line search then rejects every step and Newton stalls
+        at a fixed point. From the first stalled iteration on, the line search judges steps
+        by ``|F|^2 / 2`` instead, which a Newton step in its quadratic range decreases.
+        """
+        norm = snes.getFunctionNorm()
+        if iteration > 0 and abs(norm - self._last_norm) <= STALL_RTOL * self._last_norm:
+            self._merit_is_energy = False
+        self._last_norm = norm
         self._set_state(snes.getSolution())
         with self._watch("contact_update"):
             rebuild = self.contact.pattern_needs_rebuild()
@@ -250,6 +273,7 @@ class ContactProblem:
                 not converge; otherwise return the result with ``converged=False``.
         """
         self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
+        self._merit_is_energy, self._last_norm = True, np.inf
         self.u.x.petsc_vec.copy(self._x)
         dolfinx.fem.petsc.set_bc(self._x, self.bcs)
         self.snes.setConvergenceHistory(reset=True)
@@ -264,7 +288,7 @@ class ContactProblem:
         return result
 
     def __del__(self):
-        for obj in ("snes", "_A", "_b", "_x"):
+        for obj in ("snes", "_A", "_b", "_x", "_b_trial"):
             if hasattr(self, obj):
                 getattr(self, obj).destroy()
 

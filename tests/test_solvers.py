@@ -1,57 +1,269 @@
-"""ContactProblem: a block pressed onto another converges, quadratically near the solution."""
+"""Newton solvers with contact: quadratic convergence, the sparsity pattern rebuilt when bodies
+close a gap, the NewtonSolver problem, load stepping, and contact added to a user's own form."""
 
 from __future__ import annotations
 
 import itertools
+import warnings
+from pathlib import Path
 
 from mpi4py import MPI
 
 import dolfinx
 import numpy as np
+import pytest
 import ufl
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
-from fenics_matdepth.solvers import ContactProblem
+from fenics_matdepth.solvers import ContactProblem, NonlinearContactProblem, SolveResult
+
+E, NU = 1.0, 0.3
+
+
+def _stacked_blocks(comm, gap: float = 0.0, sink: float = 0.0, mesh=None):
+    """A 1 x 1 x 0.5 block and a smaller block above it (bottom at z = 0.5 + gap - sink);
+    a new mesh unless ``mesh`` (made by this function) is given."""
+    if mesh is None:
+        xa, ca = _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
+        xb, cb = _box_tets(3, (0.25, 0.2, 0.5 + gap - sink), (0.5, 0.55, 0.4))
+        cells = np.vstack((ca, cb + xa.shape[0]))
+        mesh = create_tetrahedral_mesh(comm, cells, np.vstack((xa, xb)))
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E, NU)
+    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    psi = fm.materials.neo_hookean(F_def, mu, kappa)
+    residual = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    return mesh, V, u, residual, psi * ufl.dx
+
+
+def _press_bcs(mesh, V, top_z: float, push: float):
+    """Lower block's bottom clamped; the upper block's top face moved by ``push`` along z."""
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], top_z))
+    g = dolfinx.fem.Function(V)
+    g.x.array.reshape(-1, 3)[:, 2] = push
+    bcs = [
+        dolfinx.fem.dirichletbc(
+            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
+        ),
+        dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, 2, top)),
+    ]
+    return bcs, g
+
+
+def _assert_quadratic(r: np.ndarray) -> None:
+    assert r[-1] <= 1e-10 * r[0], f"not converged to 1e-10: {r}"
+    tail = [(a, b) for a, b in itertools.pairwise(r) if a < 1e-3 * r[0] and b > 1e-14]
+    assert tail, f"no iterations in the asymptotic range: {r}"
+    # once the residual is small, each step squares it (up to a constant)
+    assert all(b <= 1e3 * a**2 for a, b in tail), f"not quadratic: {r}"
 
 
 def test_block_pressed_on_block_converges_quadratically():
     comm = MPI.COMM_WORLD
-    xa, ca = _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
-    xb, cb = _box_tets(3, (0.25, 0.2, 0.5), (0.5, 0.55, 0.4))  # resting on the lower block
-    mesh = create_tetrahedral_mesh(comm, np.vstack((ca, cb + xa.shape[0])), np.vstack((xa, xb)))
-    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
-    u = dolfinx.fem.Function(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
-    P = ufl.diff(psi, F_def)
-    v = ufl.TestFunction(V)
-    residual = ufl.inner(P, ufl.grad(v)) * ufl.dx
-    energy = psi * ufl.dx
-
-    fdim = 2
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, fdim, lambda x: np.isclose(x[2], 0.0))
-    top = dolfinx.mesh.locate_entities_boundary(mesh, fdim, lambda x: np.isclose(x[2], 0.9))
-    push = dolfinx.fem.Function(V)
-    push.x.array.reshape(-1, 3)[:, 2] = -0.03
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, fdim, bottom)
-        ),
-        dolfinx.fem.dirichletbc(push, dolfinx.fem.locate_dofs_topological(V, fdim, top)),
-    ]
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
     problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
     result = problem.solve()
     assert result.converged
-    r = result.residual_norms
-    assert r[-1] <= 1e-10 * r[0]
-    # Quadratic convergence: once the residual is small, each step squares it (up to C).
-    tail = [(a, b) for a, b in itertools.pairwise(r) if a < 1e-3 * r[0] and b > 1e-14]
-    assert tail, f"no iterations in the asymptotic range: {r}"
-    assert all(b <= 1e3 * a**2 for a, b in tail), f"not quadratic: {r}"
-    # The upper block is pushed into the lower one: contact is active, penetration small.
+    _assert_quadratic(result.residual_norms)
     diag = contact.diagnostics()
     assert diag["active_pairs"] > 0
+    # every second of the solve is attributed, and each part was exercised
+    assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
+
+
+def _gap_closing(comm, solver: str, mesh=None):
+    """The upper block starts 0.05 above the lower one (more than the pattern margin) and its
+    top is pushed down 0.08 in two load steps: contact appears outside the first pattern."""
+    mesh, V, u, residual, energy = _stacked_blocks(comm, gap=0.05, mesh=mesh)
+    bcs, g = _press_bcs(mesh, V, 0.95, 0.0)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    assert contact.margin < 0.05
+    if solver == "snes":
+        problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    else:
+        with warnings.catch_warnings():  # DOLFINx >= 0.10 deprecates the NewtonSolver
+            warnings.simplefilter("ignore", DeprecationWarning)
+            problem = NonlinearContactProblem(residual, u, contact, bcs=bcs)
+            problem.newton_solver()
+
+    def set_load(t):
+        g.x.array.reshape(-1, 3)[:, 2] = -0.08 * t
+
+    return problem, set_load
+
+
+@pytest.mark.parametrize("solver", ["snes", "newton"])
+def test_pattern_rebuilt_when_contact_appears(solver):
+    problem, set_load = _gap_closing(MPI.COMM_WORLD, solver)
+    assert problem.contact.energy() == 0.0
+    steps = fm.solve_load_steps(problem, set_load, num_steps=2)
+    assert np.isclose(steps[-1].load, 1.0)
+    assert problem.pattern_rebuilds >= 1
+    assert steps[-1].diagnostics["active_pairs"] > 0
+    A = problem._A if solver == "snes" else problem.matrix
+    assert A.getInfo()["mallocs"] == 0
+    _assert_quadratic(steps[-1].residual_norms)
+
+
+def test_newton_solver_problem_matches_snes():
+    """NonlinearContactProblem (dolfinx NewtonSolver, full steps) reaches the SNES solution."""
+    comm = MPI.COMM_WORLD
+    snes, set_snes = _gap_closing(comm, "snes")
+    newton, set_newton = _gap_closing(comm, "newton", snes.u.function_space.mesh)
+    fm.solve_load_steps(snes, set_snes, num_steps=2, progress=False)
+    fm.solve_load_steps(newton, set_newton, num_steps=2, progress=False)
+    a, b = snes.u.x.array, newton.u.x.array
+    assert np.abs(a - b).max() <= 1e-8 * np.abs(a).max()
+
+
+def test_newton_solver_needs_the_contact_matrix():
+    import dolfinx.nls.petsc
+
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, _ = _stacked_blocks(comm, sink=0.01)
+    bcs, _ = _press_bcs(mesh, V, 0.89, 0.0)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        problem = NonlinearContactProblem(residual, u, contact, bcs=bcs)
+        solver = dolfinx.nls.petsc.NewtonSolver(comm, problem)
+    with pytest.raises(RuntimeError, match="attach"):
+        solver.solve(u)
+
+
+class _FailsOnLargeSteps:
+    """Wraps a problem; a solve whose load increment exceeds ``limit``, or whose load exceeds
+    ``max_load``, fails (and leaves NaN in u, as a diverged solve would); a successful one
+    adds 1 to u."""
+
+    def __init__(self, problem, limit: float, max_load: float = np.inf):
+        self.problem, self.limit, self.max_load = problem, limit, max_load
+        self.u, self.contact = problem.u, problem.contact
+        self.load = self.converged_load = 0.0
+        self.start_states: list[np.ndarray] = []
+
+    def set_load(self, t: float) -> None:
+        self.load = t
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult:
+        self.start_states.append(self.u.x.array.copy())
+        if self.load - self.converged_load > self.limit + 1e-12 or self.load > self.max_load:
+            self.u.x.array[:] = np.nan
+            return SolveResult(False, -1, 3, np.array([1.0, 2.0, 4.0]))
+        self.u.x.array[:] += 1.0
+        self.converged_load = self.load
+        return SolveResult(True, 2, 1, np.array([1.0, 1e-12]))
+
+
+def _touching_problem(comm, mesh=None):
+    mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
+    bcs, g = _press_bcs(mesh, V, 0.9, 0.0)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    return ContactProblem(residual, u, contact, bcs=bcs, energy=energy), g
+
+
+def test_load_steps_cut_and_grow_back():
+    comm = MPI.COMM_WORLD
+    problem, _ = _touching_problem(comm)
+    flaky = _FailsOnLargeSteps(problem, limit=0.3)
+    written = []
+    steps = fm.solve_load_steps(flaky, flaky.set_load, num_steps=2, writer=written.append)
+    # 0.5 fails -> 0.25; grows back to 0.5 -> fails -> 0.25 ... the last increment is 0.25
+    assert [s.load for s in steps] == [0.25, 0.5, 0.75, 1.0]
+    assert [s.cuts for s in steps] == [1, 1, 1, 0]
+    assert written == [0.25, 0.5, 0.75, 1.0]
+    # every retry starts from the last converged state, not from the failed one
+    assert all(np.all(np.isfinite(s)) for s in flaky.start_states)
+    assert np.all(flaky.u.x.array == 4.0)
+
+
+def test_load_steps_give_up_below_min_step_keeping_the_last_state():
+    comm = MPI.COMM_WORLD
+    problem, _ = _touching_problem(comm)
+    flaky = _FailsOnLargeSteps(problem, limit=1.0, max_load=0.5)
+    with pytest.raises(RuntimeError, match=r"stopped at load factor 0\.5"):
+        fm.solve_load_steps(flaky, flaky.set_load, num_steps=2, min_step=0.01, progress=False)
+    # 0.5 converged; 1.0, 0.75, ..., 0.515625 failed; 0.0078 < min_step
+    assert len(flaky.start_states) == 7
+    assert np.all(flaky.u.x.array == 1.0)
+    assert flaky.load == 0.5
+
+
+def test_load_steps_reach_the_one_step_solution(tmp_path_factory):
+    """Pressing in three load steps (written to VTX for ParaView) ends where one step does."""
+    comm = MPI.COMM_WORLD
+    one, g1 = _touching_problem(comm)
+    g1.x.array.reshape(-1, 3)[:, 2] = -0.04
+    one.solve()
+    stepped, g3 = _touching_problem(comm, one.u.function_space.mesh)
+
+    def set_load(t):
+        g3.x.array.reshape(-1, 3)[:, 2] = -0.04 * t
+
+    folder = Path(comm.bcast(str(tmp_path_factory.mktemp("vtx")) if comm.rank == 0 else None))
+    with dolfinx.io.VTXWriter(comm, folder / "press.bp", [stepped.u], engine="BP4") as vtx:
+        steps = fm.solve_load_steps(stepped, set_load, num_steps=3, writer=vtx)
+    assert [s.cuts for s in steps] == [0, 0, 0]
+    assert np.isclose(steps[-1].load, 1.0)
+    assert steps[-1].diagnostics["active_pairs"] > 0
+    assert (folder / "press.bp").exists()
+    a, b = one.u.x.array, stepped.u.x.array
+    assert np.abs(a - b).max() <= 1e-8 * np.abs(a).max()
+
+
+def test_contact_with_body_force_and_follower_pressure():
+    """Contact added unchanged to a user's own form: weight plus a follower pressure on the
+    upper block's top face, whose sides are held only horizontally (u_x = u_y = 0 on the
+    top). At equilibrium the vertical contact force on the upper block balances the weight
+    and the pressure's vertical resultant on the deformed top face (computed by UFL)."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, _ = _stacked_blocks(comm, sink=0.005)
+    top_z = 0.895
+    fdim = 2
+    top = dolfinx.mesh.locate_entities_boundary(mesh, fdim, lambda x: np.isclose(x[2], top_z))
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, fdim, lambda x: np.isclose(x[2], 0.0))
+    tags = dolfinx.mesh.meshtags(mesh, fdim, top, np.full(top.size, 1, dtype=np.int32))
+    ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
+    rho_g = dolfinx.fem.Constant(mesh, 0.05)
+    pressure = dolfinx.fem.Constant(mesh, 0.02)
+    v = ufl.TestFunction(V)
+    F_def = ufl.Identity(3) + ufl.grad(u)
+    N = ufl.FacetNormal(mesh)
+    # follower load: the pressure acts on the current area along the current normal
+    traction = -pressure * ufl.det(F_def) * ufl.inv(F_def).T * N
+    body = ufl.as_vector((0.0, 0.0, -1.0)) * rho_g
+    # the upper block's cells: their midpoints lie above z = 0.5 (DG0 interpolates there)
+    upper = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("DG", 0)))
+    upper.interpolate(lambda x: (x[2] > 0.5).astype(float))
+    F = residual - ufl.inner(traction, v) * ds(1) - upper * ufl.inner(body, v) * ufl.dx
+    bcs = [
+        dolfinx.fem.dirichletbc(
+            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, fdim, bottom)
+        )
+    ]
+    for c in (0, 1):
+        Vc = V.sub(c)
+        dofs = dolfinx.fem.locate_dofs_topological(Vc, fdim, top)
+        bcs.append(dolfinx.fem.dirichletbc(dolfinx.default_scalar_type(0.0), dofs, Vc))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(F, u, contact, bcs=bcs, petsc_options_prefix="combined_")
+    result = problem.solve()
+    assert result.converged
+    _assert_quadratic(result.residual_norms)
+
+    def total(form):
+        return comm.allreduce(dolfinx.fem.assemble_scalar(dolfinx.fem.form(form)))
+
+    weight = total(upper * rho_g * ufl.dx)
+    pressure_z = total(traction[2] * ds(1))
+    assert pressure_z < 0.0 and weight > 0.0
+    res = contact.force_resultants()
+    upper_body = contact.body_of_vertex[np.argmax(contact._X[:, 2])]
+    expected = weight - pressure_z  # the contact force holds both up
+    assert abs(res[upper_body, 2] - expected) <= 1e-8 * expected, (res, expected)

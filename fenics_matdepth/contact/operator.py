@@ -228,7 +228,7 @@ class ContactOperator:
                 self._pair_k, self.penalty, want_grad, want_hess,
             )  # fmt: skip
             verts = np.hstack((self._nodes[self._pair_a, None], self._tets[self._pair_k]))
-        dofs = (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], -1)
+        dofs = (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], 3 * verts.shape[1])
         out = {"energy": energy, "grad": grad, "hess": hess, "dofs": dofs, "verts": verts}
         if self.integration == "area":
             out["active"] = active
