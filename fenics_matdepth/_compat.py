@@ -14,6 +14,7 @@ __all__ = [
     "geometry_cmap",
     "geometry_dofmap",
     "gmsh_model_to_mesh",
+    "interpolation_points",
     "solve_nonlinear",
 ]
 
@@ -190,3 +191,12 @@ def create_tetrahedral_mesh(comm, cells, x):
     if DOLFINX_VERSION >= (0, 10):
         return dolfinx.mesh.create_mesh(comm, cells, element, x)
     return dolfinx.mesh.create_mesh(comm, cells, x, element)
+
+
+def interpolation_points(V):
+    """Reference interpolation points of a function space's element.
+
+    A method of ``V.element`` on DOLFINx 0.9, a property from 0.10 on.
+    """
+    points = V.element.interpolation_points
+    return points() if callable(points) else points

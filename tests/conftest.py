@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 
 from mpi4py import MPI
 
@@ -23,6 +24,21 @@ def _collective_cleanup():
     yield
     gc.collect()
     MPI.COMM_WORLD.Barrier()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Under MPI, a test that fails on some ranks only leaves the others waiting in a
+    collective (and the failed rank in the barrier above): print the failure and abort the
+    job instead of hanging until the timeout."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and MPI.COMM_WORLD.size > 1:
+        rank = MPI.COMM_WORLD.rank
+        sys.stderr.write(f"\n[rank {rank}] {item.nodeid} failed:\n{report.longreprtext}\n")
+        sys.stderr.write(f"[rank {rank}] aborting the MPI job (the other ranks may be stuck)\n")
+        sys.stderr.flush()
+        MPI.COMM_WORLD.Abort(1)
 
 
 def pytest_collection_modifyitems(config, items):

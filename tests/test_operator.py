@@ -16,20 +16,28 @@ from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact.operator import ContactOperator
 
 
-def _box_tets(n: int, origin, size) -> tuple[np.ndarray, np.ndarray]:
-    """Structured tetrahedral mesh of a box: each of n^3 cubes split into 6 (Kuhn) tets."""
-    g = np.linspace(0.0, 1.0, n + 1)
-    X = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+def _box_tets(n, origin, size) -> tuple[np.ndarray, np.ndarray]:
+    """Structured tetrahedral mesh of a box: each of the n^3 (or nx * ny * nz, for a tuple n)
+    cubes split into 6 (Kuhn) tets."""
+    nx, ny, nz = (n, n, n) if np.isscalar(n) else n
+    g = [np.linspace(0.0, 1.0, m + 1) for m in (nx, ny, nz)]
+    X = np.stack(np.meshgrid(*g, indexing="ij"), axis=-1).reshape(-1, 3)
     X = np.asarray(origin) + X * np.asarray(size)
-    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    cells = []
-    for i in range(n):
-        for j in range(n):
-            for k in range(n):
-                c = [idx[i + a, j + b, k + d] for a in (0, 1) for b in (0, 1) for d in (0, 1)]
-                cells += [[c[q] for q in t] for t in kuhn]
-    return X, np.asarray(cells, dtype=np.int64)
+    idx = np.arange(X.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
+    kuhn = np.array(
+        [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
+    )
+    # the 8 corners of every cube, in the order (a, b, d) -> 4a + 2b + d
+    corners = np.stack(
+        [
+            idx[a : nx + a, b : ny + b, d : nz + d].ravel()
+            for a in (0, 1)
+            for b in (0, 1)
+            for d in (0, 1)
+        ],
+        axis=1,
+    )
+    return X, corners[:, kuhn].reshape(-1, 4).astype(np.int64)
 
 
 def _two_boxes(comm: MPI.Comm, n: int = 3) -> dolfinx.mesh.Mesh:
