@@ -220,7 +220,9 @@ class ContactProblem:
         self.snes.setUpdate(self._start_iteration)
         if self._energy is not None:
             self.snes.setObjective(self._objective)
+            self.snes.setLineSearchPreCheck(self._check_direction)
         self._merit_is_energy = True
+        self._energy_merit_allowed = True
         self.snes.setFromOptions()
         ksp = self.snes.getKSP()
         ksp.setFromOptions()
@@ -266,6 +268,17 @@ class ContactProblem:
         with self._watch("contact_assembly"):
             return bulk + self.contact.energy()
 
+    def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> None:
+        """Line-search pre-check: the energy judges this step only if the step goes downhill.
+
+        SNES moves to ``x - lambda y`` with ``J y = F``; the energy's slope along that path is
+        ``-F . y``, negative when J is positive definite. Where the contact Hessian makes J
+        indefinite (deep, sharp overlaps), ``F . y`` can be negative: the Newton step climbs
+        the energy and no step length decreases it. That step is judged by ``|F|^2 / 2``
+        instead, which the Newton step always decreases for small enough steps.
+        """
+        self._merit_is_energy = self._energy_merit_allowed and y.dot(self._b) > 0.0
+
     def _start_iteration(self, snes: PETSc.SNES, iteration: int) -> None:
         """Before each Newton step's Jacobian: switch the line search's merit function if the
         energy stalled; rebuild the matrix if contact left its pattern.
@@ -287,7 +300,7 @@ class ContactProblem:
             norm <= MERIT_SWITCH_RTOL * self._first_norm
             or abs(norm - self._last_norm) <= STALL_RTOL * self._last_norm
         ):
-            self._merit_is_energy = False
+            self._energy_merit_allowed = False
         self._last_norm = norm
         self._set_state(snes.getSolution())
         with self._watch("contact_update"):
@@ -317,6 +330,7 @@ class ContactProblem:
         """
         self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
         self._merit_is_energy, self._last_norm = True, np.inf
+        self._energy_merit_allowed = True
         self.u.x.petsc_vec.copy(self._x)
         dolfinx.fem.petsc.set_bc(self._x, self.bcs)
         self.snes.setConvergenceHistory(reset=True)
