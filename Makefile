@@ -5,7 +5,7 @@ NP ?= 2
 PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-bar demos test test-serial test-mpi lint format bench env
+.PHONY: demo demo-bar test test-serial test-mpi lint format bench env
 
 demo:  ## the main job: the concave-corner comparison (paper section 5), pictures in demos/output/
 	$(FENICSX) python3 demos/demo_concave_corner.py
