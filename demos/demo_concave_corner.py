@@ -70,12 +70,8 @@
 # +
 from __future__ import annotations
 
-import atexit
 import json
 import os
-import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -88,6 +84,7 @@ from dolfinx import fem, io, mesh, plot
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import gmsh_model_to_mesh
+from fenics_matdepth.plotting import offscreen_pyvista
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -498,55 +495,10 @@ def gather_grid(displacement: fem.Function):
     )
 
 
-def start_virtual_display() -> bool:
-    """Make sure VTK has an X server to render into; False if there is none to be had.
-
-    Debian's VTK renders through X11 even off-screen, and aborts the process without an X
-    server, so on a headless Linux machine we start a private Xvfb (it picks a free display
-    number and reports it on ``-displayfd``) and stop it when the demo exits.
-    """
-    if os.environ.get("DISPLAY") or not sys.platform.startswith("linux"):
-        return True
-    xvfb = shutil.which("Xvfb")
-    if xvfb is None:
-        return False
-    read_end, write_end = os.pipe()
-    server = subprocess.Popen(
-        [xvfb, "-displayfd", str(write_end), "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
-        pass_fds=(write_end,),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    os.close(write_end)
-    with os.fdopen(read_end) as display_number:
-        number = display_number.readline().strip()
-    if not number:
-        server.kill()
-        return False
-    os.environ["DISPLAY"] = f":{number}"
-    atexit.register(server.wait)
-    atexit.register(server.terminate)
-    return True
-
-
-def import_offscreen_pyvista():
-    """pyvista set up for off-screen rendering, or None if that is not possible."""
-    try:
-        import pyvista
-    except ImportError:
-        print("pyvista is not installed: no picture")
-        return None
-    if not start_virtual_display():
-        print("no X server and no Xvfb: no picture")
-        return None
-    pyvista.OFF_SCREEN = True
-    return pyvista
-
-
 initial = fem.Function(V)
 set_wedge_translation(initial, push)
 grid = gather_grid(initial)
-if comm.rank == 0 and (pyvista := import_offscreen_pyvista()) is not None:
+if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
     cells, types, points, depths, wedge_points = grid
     bodies = pyvista.UnstructuredGrid(cells, types, points)
     bodies.point_data["material depth (mm)"] = depths
