@@ -461,12 +461,14 @@ def propose_penalty(
 ) -> float:
     """A penalty parameter eps (pressure / length) from the stiffest modulus and the mesh size.
 
-    ``eps = factor * modulus / h``. A contact pressure p then penetrates ``g = p / eps =
-    (p / modulus) h / factor``: the penetration is ``1 / factor`` of the compression that
-    pressure causes across one element of size ``h``, and the contact stiffness of a surface
-    vertex (about ``eps h^2``) is ``factor`` times the stiffness of its element (about
-    ``modulus h``). Larger factors reduce penetration but worsen conditioning; 10 to 100
-    suits the Newton solver with a direct linear solver.
+    ``eps = factor * modulus / h``. Where one surface enters a body, a contact pressure p
+    penetrates ``g = p / eps = (p / modulus) h / factor``: ``1 / factor`` of the compression that
+    pressure causes across one element of size ``h``. Between two deformable bodies both
+    surfaces enter the other body and both terms carry the load, so the overlap is about
+    ``p / (2 eps)`` (the patch test in ``tests/test_validation.py`` checks this). The contact
+    stiffness of a surface vertex (about ``eps h^2``) is ``factor`` times the stiffness of its
+    element (about ``modulus h``). Larger factors reduce penetration but worsen conditioning;
+    10 to 100 suits the Newton solver with a direct linear solver.
 
     Args:
         mesh: the tetrahedral mesh of the bodies.
