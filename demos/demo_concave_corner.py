@@ -84,7 +84,7 @@ from dolfinx import fem, io, mesh, plot
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import gmsh_model_to_mesh
-from fenics_matdepth.plotting import offscreen_pyvista
+from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -479,20 +479,7 @@ def gather_grid(displacement: fem.Function):
         component.interpolate(displacement.sub(i))
         moved[:, i] = points[:, i] + component.x.array[: points.shape[0]]
     values = depth.x.array[: points.shape[0]]
-    parts = comm.gather((cells, types, moved, values, in_wedge(points)), root=0)
-    if comm.rank != 0:
-        return None
-    offset, all_cells = 0, []
-    for part_cells, _, part_points, *_ in parts:
-        # VTK cell arrays are [n, i_0, ..., i_{n-1}, n, ...]; all cells have the same n here.
-        block = part_cells.reshape(-1, part_cells[0] + 1).copy()
-        block[:, 1:] += offset
-        all_cells.append(block.ravel())
-        offset += part_points.shape[0]
-    return (
-        np.concatenate(all_cells),
-        *(np.concatenate([p[i] for p in parts]) for i in (1, 2, 3, 4)),
-    )
+    return gather_vtk_grid(comm, cells, types, moved, values, in_wedge(points))
 
 
 initial = fem.Function(V)

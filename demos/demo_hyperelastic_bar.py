@@ -75,7 +75,7 @@ from dolfinx import fem, io, mesh, plot
 
 from fenics_matdepth import materials
 from fenics_matdepth._compat import solve_nonlinear
-from fenics_matdepth.plotting import offscreen_pyvista
+from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -204,22 +204,7 @@ def gather_grid(u: fem.Function):
     """Return (cells, cell types, points, displacements) of the whole mesh on rank 0."""
     cells, types, points = plot.vtk_mesh(u.function_space)
     values = u.x.array.reshape(-1, 3)[: points.shape[0]]
-    parts = comm.gather((cells, types, points, values), root=0)
-    if comm.rank != 0:
-        return None
-    offset, all_cells = 0, []
-    for part_cells, _, part_points, _ in parts:
-        # VTK cell arrays are [n, i_0, ..., i_{n-1}, n, ...]; all cells have the same n here.
-        block = part_cells.reshape(-1, part_cells[0] + 1).copy()
-        block[:, 1:] += offset
-        all_cells.append(block.ravel())
-        offset += part_points.shape[0]
-    return (
-        np.concatenate(all_cells),
-        np.concatenate([p[1] for p in parts]),
-        np.vstack([p[2] for p in parts]),
-        np.vstack([p[3] for p in parts]),
-    )
+    return gather_vtk_grid(comm, cells, types, points, values)
 
 
 grids = {name: gather_grid(u) for name, u in solutions.items()}

@@ -1,4 +1,5 @@
-"""Off-screen rendering with pyvista, also on a headless Linux machine (CI, clusters)."""
+"""Pictures from demos and scripts: off-screen pyvista, also on a headless Linux machine (CI,
+clusters), and distributed meshes gathered on rank 0 for it."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import shutil
 import subprocess
 import sys
 
-__all__ = ["offscreen_pyvista", "start_virtual_display"]
+import numpy as np
+
+__all__ = ["gather_vtk_grid", "offscreen_pyvista", "start_virtual_display"]
 
 
 def start_virtual_display() -> bool:
@@ -55,3 +58,29 @@ def offscreen_pyvista():
         return None
     pyvista.OFF_SCREEN = True
     return pyvista
+
+
+def gather_vtk_grid(comm, cells, types, points, *point_data):
+    """The pieces of a distributed VTK grid joined on rank 0 (None on other ranks).
+
+    Args:
+        comm: the mesh's communicator.
+        cells, types, points: this rank's ``dolfinx.plot.vtk_mesh`` arrays.
+        point_data: arrays with one row per point of this rank.
+
+    Returns:
+        ``(cells, types, points, *point_data)`` of the whole mesh, cell connectivity renumbered
+        into the concatenated points (collective).
+    """
+    parts = comm.gather((cells, types, points, *point_data), root=0)
+    if comm.rank != 0:
+        return None
+    offset, all_cells = 0, []
+    for part_cells, _, part_points, *_ in parts:
+        # VTK cell arrays are [n, i_0, ..., i_{n-1}, n, ...]; all cells have the same n here.
+        block = part_cells.reshape(-1, part_cells[0] + 1).copy()
+        block[:, 1:] += offset
+        all_cells.append(block.ravel())
+        offset += part_points.shape[0]
+    joined = (np.concatenate([p[i] for p in parts]) for i in range(1, len(parts[0])))
+    return (np.concatenate(all_cells), *joined)
