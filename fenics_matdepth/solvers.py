@@ -221,8 +221,6 @@ class ContactProblem:
         if self._energy is not None:
             self.snes.setObjective(self._objective)
             self.snes.setLineSearchPreCheck(self._check_direction)
-        self._merit_is_energy = True
-        self._energy_merit_allowed = True
         self.snes.setFromOptions()
         ksp = self.snes.getKSP()
         ksp.setFromOptions()

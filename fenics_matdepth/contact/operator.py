@@ -163,7 +163,7 @@ class ContactOperator:
         self._pair_a = np.empty(0, dtype=INDEX)
         self._pair_k = np.empty(0, dtype=INDEX)
         self._pattern_keys: np.ndarray | None = None
-        self._cache: dict[str, np.ndarray] = {}
+        self._cache: dict[str, typing.Any] = {}
         self.update()
 
     # -- geometry -------------------------------------------------------------------------
@@ -324,14 +324,21 @@ class ContactOperator:
         return np.unique(a * self.num_vertices + b)
 
     def pattern_needs_rebuild(self) -> bool:
-        """Whether a current contact coupling lies outside the pattern (collective)."""
+        """Whether a current contact coupling lies outside the pattern (collective).
+
+        The answer is kept until the next :meth:`update` or :meth:`create_matrix`: a solver
+        that asks before assembling does not pay again inside :meth:`add_jacobian`.
+        """
+        if "pattern_missing" in self._cache:
+            return self._cache["pattern_missing"]
         verts = self._evaluate(False, False)["verts"]
         keys = self._vertex_coupling_keys(verts)
         if self._pattern_keys is None:
             missing = keys.size > 0
         else:
             missing = not np.all(np.isin(keys, self._pattern_keys, assume_unique=True))
-        return bool(self.comm.allreduce(missing, op=MPI.LOR))
+        self._cache["pattern_missing"] = bool(self.comm.allreduce(missing, op=MPI.LOR))
+        return self._cache["pattern_missing"]
 
     def create_matrix(self, a: dolfinx.fem.Form) -> PETSc.Mat:
         """A PETSc matrix holding the bulk form's pattern plus the contact couplings.
@@ -358,6 +365,7 @@ class ContactOperator:
         else:
             verts = np.hstack((self._nodes[pa, None], self._tets[pk]))
         self._pattern_keys = self._vertex_coupling_keys(verts)
+        self._cache.pop("pattern_missing", None)
         vi = self._pattern_keys // self.num_vertices
         vj = self._pattern_keys % self.num_vertices
         # Each vertex coupling (vi, vj) is a 3 x 3 block of dofs.
