@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["gather_vtk_grid", "offscreen_pyvista", "start_virtual_display"]
+__all__ = ["gather_vtk_grid", "offscreen_pyvista", "start_virtual_display", "write_animation"]
 
 
 def start_virtual_display() -> bool:
@@ -84,3 +84,38 @@ def gather_vtk_grid(comm, cells, types, points, *point_data):
         offset += part_points.shape[0]
     joined = (np.concatenate([p[i] for p in parts]) for i in range(1, len(parts[0])))
     return (np.concatenate(all_cells), *joined)
+
+
+def write_animation(frames, path, fps: float = 10.0, loop: bool = True) -> str:
+    """Join rendered frames (PNG files or RGB(A) arrays, all the same size) into an animated GIF.
+
+    Pillow (a dependency of matplotlib) writes the GIF, so no video codec is needed. Render
+    every frame with one fixed colour scale and camera, so that the animation compares like
+    with like.
+
+    Args:
+        frames: a sequence of PNG paths or ``(height, width, 3|4)`` uint8 arrays, in time order.
+        path: the GIF to write (``.gif``).
+        fps: frames per second.
+        loop: repeat forever (else play once).
+
+    Returns:
+        ``path`` as a string.
+
+    Raises:
+        ValueError: if there are no frames or they differ in size.
+    """
+    from PIL import Image
+
+    images = [Image.open(f) if isinstance(f, str | os.PathLike) else Image.fromarray(f) for f in frames]
+    if not images:
+        raise ValueError("write_animation needs at least one frame")
+    sizes = {im.size for im in images}
+    if len(sizes) != 1:
+        raise ValueError(f"all frames must have the same size, got {sorted(sizes)}")
+    rgb = [im.convert("RGB") for im in images]
+    rgb[0].save(
+        str(path), save_all=True, append_images=rgb[1:], duration=int(round(1000.0 / fps)),
+        loop=0 if loop else 1, optimize=False,
+    )  # fmt: skip
+    return str(path)

@@ -1,0 +1,39 @@
+"""Plotting helpers that need no renderer: the GIF writer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fenics_matdepth.plotting import write_animation
+
+
+@pytest.mark.serial
+def test_write_animation_keeps_frames_in_order(tmp_path):
+    """Three frames of distinct colours come back as three frames of those colours, in order."""
+    from PIL import Image
+
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255)]
+    paths = []
+    for i, c in enumerate(colours):
+        frame = np.zeros((24, 32, 3), dtype=np.uint8) + np.array(c, dtype=np.uint8)
+        Image.fromarray(frame).save(tmp_path / f"f{i}.png")
+        paths.append(tmp_path / f"f{i}.png")
+    out = write_animation(paths, tmp_path / "a.gif", fps=5)
+    with Image.open(out) as gif:
+        assert gif.n_frames == 3
+        assert gif.size == (32, 24)
+        for i, c in enumerate(colours):
+            gif.seek(i)
+            pixel = np.asarray(gif.convert("RGB"))[12, 16]
+            assert np.abs(pixel.astype(int) - c).max() <= 8
+            assert gif.info["duration"] == 200
+
+
+@pytest.mark.serial
+def test_write_animation_rejects_bad_frames(tmp_path):
+    with pytest.raises(ValueError, match="at least one frame"):
+        write_animation([], tmp_path / "a.gif")
+    frames = [np.zeros((4, 4, 3), np.uint8), np.zeros((5, 4, 3), np.uint8)]
+    with pytest.raises(ValueError, match="same size"):
+        write_animation(frames, tmp_path / "b.gif")
