@@ -84,7 +84,7 @@ from dolfinx import fem, io, mesh, plot
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import gmsh_model_to_mesh
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista
+from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, show_image
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -386,6 +386,7 @@ if comm.rank == 0:
     left.legend()
     fig.savefig(output / "concave_corner_convergence.png", dpi=100)
     plt.close(fig)
+    show_image(output / "concave_corner_convergence.png")
 # -
 
 # ### The wedge slides across the corner
@@ -444,6 +445,7 @@ if comm.rank == 0:
     left.legend()
     fig.savefig(output / "concave_corner_slide.png", dpi=100)
     plt.close(fig)
+    show_image(output / "concave_corner_slide.png")
 # -
 
 # ### Output
@@ -534,6 +536,7 @@ if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
     plotter.camera.parallel_scale = 1.2 * zoom
     plotter.screenshot(output / "concave_corner_depth.png")
     plotter.close()
+    show_image(output / "concave_corner_depth.png")
 # -
 
 # A short summary for the tests and the documentation:

@@ -64,6 +64,7 @@
 # +
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -75,16 +76,19 @@ from dolfinx import fem, io, mesh, plot
 
 from fenics_matdepth import materials
 from fenics_matdepth._compat import solve_nonlinear
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista
+from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, show_image
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
-try:
-    output = Path(__file__).resolve().parent / "output"
-except NameError:  # in a notebook
-    output = Path.cwd() / "output"
+if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
+    output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
+else:
+    try:
+        output = Path(__file__).resolve().parent / "output"
+    except NameError:  # in a notebook
+        output = Path.cwd() / "output"
 if comm.rank == 0:
-    output.mkdir(exist_ok=True)
+    output.mkdir(parents=True, exist_ok=True)
 comm.barrier()
 # -
 
@@ -229,6 +233,7 @@ if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
         plotter.camera.zoom(1.3)
     plotter.screenshot(output / "hyperelastic_bar.png")
     plotter.close()
+    show_image(output / "hyperelastic_bar.png")
     print(f"picture: {output / 'hyperelastic_bar.png'}")
 
 if comm.rank == 0:

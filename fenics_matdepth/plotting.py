@@ -11,7 +11,13 @@ import sys
 
 import numpy as np
 
-__all__ = ["gather_vtk_grid", "offscreen_pyvista", "start_virtual_display", "write_animation"]
+__all__ = [
+    "gather_vtk_grid",
+    "offscreen_pyvista",
+    "show_image",
+    "start_virtual_display",
+    "write_animation",
+]
 
 
 def start_virtual_display() -> bool:
@@ -107,7 +113,9 @@ def write_animation(frames, path, fps: float = 10.0, loop: bool = True) -> str:
     """
     from PIL import Image
 
-    images = [Image.open(f) if isinstance(f, str | os.PathLike) else Image.fromarray(f) for f in frames]
+    images = [
+        Image.open(f) if isinstance(f, str | os.PathLike) else Image.fromarray(f) for f in frames
+    ]
     if not images:
         raise ValueError("write_animation needs at least one frame")
     sizes = {im.size for im in images}
@@ -115,7 +123,25 @@ def write_animation(frames, path, fps: float = 10.0, loop: bool = True) -> str:
         raise ValueError(f"all frames must have the same size, got {sorted(sizes)}")
     rgb = [im.convert("RGB") for im in images]
     rgb[0].save(
-        str(path), save_all=True, append_images=rgb[1:], duration=int(round(1000.0 / fps)),
+        str(path), save_all=True, append_images=rgb[1:], duration=round(1000.0 / fps),
         loop=0 if loop else 1, optimize=False,
     )  # fmt: skip
     return str(path)
+
+
+def show_image(path) -> None:
+    """Show a rendered picture inline when running in a notebook; do nothing in a script.
+
+    Demos save their pyvista screenshots to files (scripts, CI) and call this after each, so
+    the same demo executed as a notebook (``make notebooks``, the docs) shows them in place.
+    """
+    try:
+        from IPython import get_ipython
+    except ImportError:
+        return
+    shell = get_ipython()
+    if shell is None or "IPKernelApp" not in getattr(shell, "config", {}):
+        return
+    from IPython.display import Image, display
+
+    display(Image(filename=str(path)))

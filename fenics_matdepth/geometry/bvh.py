@@ -47,7 +47,7 @@ __all__ = [
     "exclude_shared_vertex_pairs",
 ]
 
-#: Maximum number of elements per leaf (few: leaf tests are cheap, deep trees prune well).
+#: Maximum number of elements per leaf (few, since leaf tests are cheap and deep trees prune well).
 LEAF_SIZE = 4
 #: Rebuild when the refit quality ratio (summed internal-box area / root-box area) has grown by
 #: this factor since the last build: queries then visit about that many times more nodes.

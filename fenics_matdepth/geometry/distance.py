@@ -209,7 +209,7 @@ def point_triangle_distance(points: np.ndarray, triangles: np.ndarray) -> np.nda
         triangles: (3, 3) or (n, 3, 3) triangle vertex coordinates (L).
 
     Returns:
-        Distances (L): a float for a single point, else an (n,) array.
+        The distances (L), a float for a single point, else an (n,) array.
     """
     p = np.asarray(points, dtype=FLOAT)
     q = point_triangle_closest_point(p, triangles)
