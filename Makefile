@@ -5,7 +5,7 @@ NP ?= 2
 PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-bar test test-serial test-mpi lint format bench env
+.PHONY: demo demo-bar test test-serial test-mpi lint format bench env docs notebooks
 
 demo:  ## the main job: the concave-corner comparison (paper section 5), pictures in demos/output/
 	$(FENICSX) python3 demos/demo_concave_corner.py
@@ -34,3 +34,9 @@ bench:
 
 env:  ## print the versions the environment provides
 	$(FENICSX) python3 -c "import dolfinx, numba, petsc4py, sys; print('python', sys.version.split()[0], 'dolfinx', dolfinx.__version__, 'numba', numba.__version__, 'petsc4py', petsc4py.__version__)"
+
+notebooks:  ## every demo as a notebook, executed headless (reduced size) into docs/demos/
+	$(FENICSX) python3 docs/run_notebooks.py
+
+docs: notebooks  ## the documentation site (warnings are errors) into docs/_build/html
+	$(FENICSX) python3 -m sphinx -W --keep-going -n -q -b html docs docs/_build/html
