@@ -27,7 +27,13 @@ from test_self_contact import LENGTH, THICKNESS, WIDTH, _end_motion
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
-from fenics_matdepth.contact.kernels import collocation_energy, pair_energy
+from fenics_matdepth.contact.kernels import (
+    _area_pairs,
+    _area_pairs_into,
+    _area_pairs_max_depth,
+    collocation_energy,
+    pair_energy,
+)
 from fenics_matdepth.contact.operator import ContactOperator, DepthDeficiencyWarning
 from fenics_matdepth.depth import count_depth_deficient, depth_deficient_tets
 
@@ -118,6 +124,62 @@ def test_split_pair_derivatives_match_finite_differences(which):
     dg = sum(c * f(x0 + k * step * v)[1] for k, c in stencil) / step
     assert de == pytest.approx(g0 @ v, rel=1e-6)
     assert np.linalg.norm(dg - h0 @ v) <= 1e-6 * np.linalg.norm(h0 @ v)
+
+
+def test_batch_drivers_with_split_tetrahedra():
+    """Mixed batches (split and plain tetrahedra): the compact driver `_area_pairs_into`
+    (also when its arrays are too short) and `_area_pairs_max_depth` agree with the
+    one-pair results and with the sub-tetrahedra evaluated as plain tetrahedra."""
+    rng = np.random.default_rng(5)
+    n = 12
+    x_tri = X_TRI[None] + 0.3 * rng.standard_normal((n, 3, 3))
+    x = np.vstack((x_tri.reshape(-1, 3), X_TET))
+    nt = 3 * n
+    depth = np.concatenate((np.zeros(nt + 4), [0.0, CENTROID_DEPTH]))  # 4 vertices, 2 extra
+    depth[nt + 3] = 0.05  # the plain tetrahedron has one vertex inside the body
+    tri = np.arange(nt, dtype=np.int64).reshape(n, 3)
+    tet = np.array([[nt, nt + 1, nt + 2, nt + 3, -1], [nt, nt + 1, nt + 2, nt + 3, nt + 5]])
+    pair_tri = np.arange(n, dtype=np.int64)
+    pair_tet = np.arange(n, dtype=np.int64) % 2
+    e_ref = np.array([
+        pair_energy(x_tri[p], X_TET, depth[tet[pair_tet[p], :4]], EPS,
+                    CENTROID_DEPTH if pair_tet[p] else None)[0]
+        for p in range(n)
+    ])  # fmt: skip
+    energy, grad, hess = _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
+    assert np.allclose(energy, e_ref, rtol=1e-13, atol=0.0)
+    assert np.count_nonzero(energy[pair_tet == 1] > 0) >= 2
+    m_full = None
+    for cap in (n, 2):
+        out = (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, 21)), np.empty((cap, 21, 21)))
+        m = _area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *out)
+        m_full = m if m_full is None else m_full
+        assert m == m_full
+        rows = out[0][: min(m, cap)]
+        assert np.array_equal(out[1][: rows.size], energy[rows])
+        assert np.array_equal(out[2][: rows.size], grad[rows])
+        assert np.array_equal(out[3][: rows.size], hess[rows])
+    # max depth: the largest over the sub-tetrahedra, each evaluated as a plain tetrahedron
+    subs = _sub_tets(X_TET)
+    xs = np.vstack((x_tri.reshape(-1, 3), *subs))
+    sub_depth = np.zeros(xs.shape[0])
+    sub_tet = np.arange(nt, nt + 16, dtype=np.int64).reshape(4, 4)
+    for s in range(4):
+        sub_depth[nt + 4 * s : nt + 4 * s + 4] = depth[nt : nt + 4]
+        sub_depth[nt + 4 * s + s] = CENTROID_DEPTH
+    split_pairs = pair_tri[pair_tet == 1]
+    g = _area_pairs_max_depth(x, depth, tri, tet, split_pairs, np.ones_like(split_pairs))
+    g_sub = np.max(
+        [
+            _area_pairs_max_depth(
+                xs, sub_depth, tri, sub_tet, split_pairs, np.full_like(split_pairs, s)
+            )
+            for s in range(4)
+        ],
+        axis=0,
+    )
+    assert g.max() > 0.0
+    assert np.allclose(g, g_sub, rtol=1e-14, atol=0.0)
 
 
 def test_split_collocation_depth_is_four_centroid_depths_times_min_barycentric():
