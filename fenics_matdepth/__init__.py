@@ -13,7 +13,7 @@ __version__ = "0.1.0"
 
 from fenics_matdepth import contact, geometry, materials
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
-from fenics_matdepth.depth import material_depth
+from fenics_matdepth.depth import depth_deficiency, material_depth
 from fenics_matdepth.solvers import (
     ContactProblem,
     LoadStep,
@@ -30,6 +30,7 @@ __all__ = [
     "SolveResult",
     "__version__",
     "contact",
+    "depth_deficiency",
     "geometry",
     "material_depth",
     "materials",

@@ -15,6 +15,8 @@ The numba core, :func:`distance_to_triangles`, works on plain arrays.
 
 from __future__ import annotations
 
+import typing
+
 from mpi4py import MPI
 
 import dolfinx
@@ -24,7 +26,16 @@ from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.bvh import AABBTree
 
-__all__ = ["boundary_triangles", "distance_to_triangles", "material_depth", "owned_exterior_facets"]
+__all__ = [
+    "DepthDeficiency",
+    "boundary_triangles",
+    "count_depth_deficient",
+    "depth_deficiency",
+    "depth_deficient_tets",
+    "distance_to_triangles",
+    "material_depth",
+    "owned_exterior_facets",
+]
 
 #: Bits per axis of the Morton (Z-order) key used to sort query points: 2**10 cells per axis
 #: is enough for consecutive points to be near each other, which is all the sort is for.
@@ -196,3 +207,75 @@ def material_depth(mesh: dolfinx.mesh.Mesh) -> dolfinx.fem.Function:
     depth = dolfinx.fem.Function(V, name="material_depth")
     depth.x.array[:] = distance_to_triangles(_p1_dof_coordinates(V), triangles)
     return depth
+
+
+class DepthDeficiency(typing.NamedTuple):
+    """Tetrahedra whose material depth is zero everywhere (see :func:`count_depth_deficient`).
+
+    Attributes:
+        deficient: tetrahedra whose four vertices all have depth 0.
+        boundary_adjacent: tetrahedra with at least one vertex of depth 0 (on the boundary).
+    """
+
+    deficient: int
+    boundary_adjacent: int
+
+    @property
+    def fraction(self) -> float:
+        """``deficient / boundary_adjacent`` (0 when no tetrahedron touches the boundary)."""
+        return self.deficient / self.boundary_adjacent if self.boundary_adjacent else 0.0
+
+
+def depth_deficient_tets(tets: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Mask of the tetrahedra whose four vertices all have depth 0.
+
+    The P1 depth of such a tetrahedron is 0 everywhere inside it: a surface that enters it
+    feels no contact force. This happens wherever a tetrahedron has all four vertices on the
+    exterior boundary: layers one element thick, and edges and corners of coarse meshes.
+
+    Args:
+        tets: (nk, 4) vertex indices.
+        depth: (nv,) material depth per vertex (length).
+
+    Returns:
+        (nk,) bool.
+    """
+    tets = np.asarray(tets)
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise ValueError(f"tets must have shape (nk, 4), got {tets.shape}")
+    return np.all(np.asarray(depth)[tets] <= 0.0, axis=1)
+
+
+def count_depth_deficient(tets: np.ndarray, depth: np.ndarray) -> DepthDeficiency:
+    """Count the depth-deficient tetrahedra and the boundary-adjacent ones (plain arrays).
+
+    Args:
+        tets: (nk, 4) vertex indices (each tetrahedron once, e.g. the global list).
+        depth: (nv,) material depth per vertex (length).
+
+    Returns:
+        The counts; ``.fraction`` is the share of boundary-adjacent tetrahedra that are
+        deficient.
+    """
+    deficient = depth_deficient_tets(tets, depth)
+    adjacent = np.any(np.asarray(depth)[np.asarray(tets)] <= 0.0, axis=1)
+    return DepthDeficiency(int(np.count_nonzero(deficient)), int(np.count_nonzero(adjacent)))
+
+
+def depth_deficiency(depth: dolfinx.fem.Function) -> DepthDeficiency:
+    """Count the depth-deficient tetrahedra of a mesh from its material depth (collective).
+
+    Args:
+        depth: P1 scalar material depth (from :func:`material_depth`).
+
+    Returns:
+        Global counts over the mesh's cells (each counted once, by its owning rank).
+    """
+    V = depth.function_space
+    _check_mesh(V.mesh)
+    if V.dofmap.index_map_bs != 1 or V.dofmap.list.shape[1] != 4:
+        raise ValueError("depth must be a P1 scalar Function on a tetrahedral mesh")
+    n_owned = V.mesh.topology.index_map(3).size_local
+    local = count_depth_deficient(np.asarray(V.dofmap.list)[:n_owned], depth.x.array)
+    comm = V.mesh.comm
+    return DepthDeficiency(comm.allreduce(local.deficient), comm.allreduce(local.boundary_adjacent))

@@ -41,9 +41,8 @@ from fenics_matdepth.geometry.clip import (
 __all__ = ["collocation_energy", "pair_energy"]
 
 _NV = MAX_POLYGON_VERTICES
-# vertex lists of the single-pair helpers: triangle 0..2, tetrahedron 3..6
+# triangle of the single-pair helper (its tetrahedron is 3..6)
 _ONE_TRI = np.array([[0, 1, 2]], dtype=INDEX)
-_ONE_TET = np.array([[3, 4, 5, 6]], dtype=INDEX)
 #: Below this |sum(c_a x c_b)| two polygon lines are taken as parallel (derivative guard; the
 #: coefficients are barycentric values of order one, so this only catches exact parallelism).
 _PARALLEL_TOL = 1e-100
@@ -601,6 +600,92 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
     return energy
 
 
+@njit(inline="always")
+def _is_split(tet, k):
+    """Whether tetrahedron k is evaluated as four sub-tetrahedra around its centroid: a fifth
+    column of ``tet``, when present, holds the index in ``depth`` of the centroid's depth
+    (``-1``: not split)."""
+    return tet.shape[1] > 4 and tet[k, 4] >= 0
+
+
+@njit(inline="always")
+def _gather_tet(x, depth, tet, k, s, split, xt, dt):
+    """Vertices ``xt`` (4, 3) and depths ``dt`` (4,) of tetrahedron k, or, when ``split``, of
+    its sub-tetrahedron s: vertex s replaced by the centroid (the mean of the four current
+    vertices, so linear in them) with the centroid's depth."""
+    for a in range(4):
+        v = tet[k, a]
+        dt[a] = depth[v]
+        for r in range(3):
+            xt[a, r] = x[v, r]
+    if split:
+        for r in range(3):
+            xt[s, r] = 0.25 * (
+                x[tet[k, 0], r] + x[tet[k, 1], r] + x[tet[k, 2], r] + x[tet[k, 3], r]
+            )
+        dt[s] = depth[tet[k, 4]]
+
+
+@njit(inline="always")
+def _fold_centroid(grad, hess, row, off, n, s, want_grad, want_hess, acc_g, acc_h):
+    """Map sub-tetrahedron s's derivatives (row ``row`` of grad and hess, changed in place) to
+    the parent tetrahedron's vertices and add them to ``acc_g`` (n,) and ``acc_h`` (n, n).
+
+    The centroid occupies slot s (dofs ``off + 3 s + r``) and is the mean of the four parent
+    vertices (slots 0..3), so with that fixed linear map T: ``grad_parent = T^T grad_sub`` and
+    ``hess_parent = T^T hess_sub T``, i.e. a quarter of slot s's row (column) is moved to each
+    of the four slots.
+    """
+    cs = off + 3 * s
+    if want_grad:
+        for r in range(3):
+            q = 0.25 * grad[row, cs + r]
+            grad[row, cs + r] = 0.0
+            for a in range(4):
+                grad[row, off + 3 * a + r] += q
+        for c in range(n):
+            acc_g[c] += grad[row, c]
+    if want_hess:
+        for r in range(3):
+            for c in range(n):
+                q = 0.25 * hess[row, cs + r, c]
+                hess[row, cs + r, c] = 0.0
+                for a in range(4):
+                    hess[row, off + 3 * a + r, c] += q
+        for i in range(n):
+            for r in range(3):
+                q = 0.25 * hess[row, i, cs + r]
+                hess[row, i, cs + r] = 0.0
+                for a in range(4):
+                    hess[row, i, off + 3 * a + r] += q
+        for i in range(n):
+            for c in range(n):
+                acc_h[i, c] += hess[row, i, c]
+
+
+@njit(inline="always")
+def _store_folded(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
+    """Write the accumulated parent-tetrahedron derivatives into row ``row``."""
+    if want_grad:
+        for c in range(n):
+            grad[row, c] = acc_g[c]
+    if want_hess:
+        for i in range(n):
+            for c in range(n):
+                hess[row, i, c] = acc_h[i, c]
+
+
+@njit(inline="always")
+def _zero_folded(n, want_grad, want_hess, acc_g, acc_h):
+    if want_grad:
+        for c in range(n):
+            acc_g[c] = 0.0
+    if want_hess:
+        for i in range(n):
+            for c in range(n):
+                acc_h[i, c] = 0.0
+
+
 @njit(cache=True)
 def _area_pairs_core(
     x,
@@ -632,31 +717,36 @@ def _area_pairs_core(
     xs = np.empty((3, 3), dtype=FLOAT)
     xt = np.empty((4, 3), dtype=FLOAT)
     dt = np.empty(4, dtype=FLOAT)
+    acc_g = np.empty(21, dtype=FLOAT)
+    acc_h = np.empty((21, 21), dtype=FLOAT)
     m = 0
     for p in range(pair_tri.shape[0]):
         for a in range(3):
             for r in range(3):
                 xs[a, r] = x[tri[pair_tri[p], a], r]
-        for a in range(4):
-            v = tet[pair_tet[p], a]
-            dt[a] = depth[v]
-            for r in range(3):
-                xt[a, r] = x[v, r]
+        k = pair_tet[p]
+        split = _is_split(tet, k)
         row = m if compact else p
         fits = row < cap
-        # a single call site: the kernel is inlined, a second call would double compile time
-        e = _area_pair(
-            xs,
-            xt,
-            dt,
-            penalty,
-            want_grad and fits,
-            want_hess and fits,
-            work,
-            grad,
-            hess,
-            row if fits else 0,
-        )
+        wg = want_grad and fits
+        wh = want_hess and fits
+        out_row = row if fits else 0
+        if split:
+            _zero_folded(21, wg, wh, acc_g, acc_h)
+        e = -1.0
+        # a split tetrahedron is four sub-tetrahedra: the pair's energy and derivatives are
+        # the sums of theirs, mapped back to the parent's vertices
+        for s in range(4 if split else 1):
+            _gather_tet(x, depth, tet, k, s, split, xt, dt)
+            # a single call site: the kernel is inlined, a second call would double compile time
+            es = _area_pair(xs, xt, dt, penalty, wg, wh, work, grad, hess, out_row)
+            if not split:
+                e = es
+            elif es >= 0.0:
+                e = es if e < 0.0 else e + es
+                _fold_centroid(grad, hess, out_row, 9, 21, s, wg, wh, acc_g, acc_h)
+        if split:
+            _store_folded(grad, hess, out_row, 21, wg, wh, acc_g, acc_h)
         if e >= 0.0:
             if fits:
                 energy[row] = e
@@ -676,7 +766,11 @@ def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want
         x: (nv, 3) current vertex coordinates (length).
         depth: (nv,) material depth per vertex (length).
         tri: (nt, 3) boundary triangles (vertex indices).
-        tet: (nk, 4) tetrahedra (vertex indices).
+        tet: (nk, 4) tetrahedra (vertex indices), or (nk, 5): a fifth column ``c >= 0`` splits
+            the tetrahedron into four sub-tetrahedra around its centroid, whose depth is
+            ``depth[c]`` (its position is the mean of the four vertices); ``-1``: not split.
+            The pair's energy and derivatives are then the sums over the sub-tetrahedra,
+            mapped back to the four vertices (see ``docs/kernels.md``, thin layers).
         pair_tri, pair_tet: (np,) candidate pairs (indices into tri and tet).
         penalty: eps (pressure / length).
         want_grad, want_hess: whether to compute gradients and Hessians.
@@ -805,26 +899,30 @@ def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
     vlab = np.empty((2, _NV, 2), dtype=INDEX)
     elab = np.empty((2, _NV), dtype=INDEX)
     gi = np.empty(3, dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
     for p in range(pair_tri.shape[0]):
         for a in range(3):
             for r in range(3):
                 xs[a, r] = x[tri[pair_tri[p], a], r]
-        for a in range(4):
-            for r in range(3):
-                xt[a, r] = x[tet[pair_tet[p], a], r]
-        if _tet_gradients(xt, grads) == 0.0 or _triangle_area2(xs) == 0.0:
+        if _triangle_area2(xs) == 0.0:
             continue
-        _barycentric_rows(xs, xt, grads, lam)
-        n = _clip(lam, mu, vlab, elab)
-        # depth at the triangle corners, extended affinely over the parameter simplex
-        for i in range(3):
-            gi[i] = 0.0
-            for j in range(4):
-                gi[i] += lam[i, j] * depth[tet[pair_tet[p], j]]
+        k = pair_tet[p]
+        split = _is_split(tet, k)
         best = 0.0
-        for k in range(n):
-            g = mu[0, k, 0] * gi[0] + mu[0, k, 1] * gi[1] + mu[0, k, 2] * gi[2]
-            best = max(best, g)
+        for s in range(4 if split else 1):
+            _gather_tet(x, depth, tet, k, s, split, xt, dt)
+            if _tet_gradients(xt, grads) == 0.0:
+                continue
+            _barycentric_rows(xs, xt, grads, lam)
+            n = _clip(lam, mu, vlab, elab)
+            # depth at the triangle corners, extended affinely over the parameter simplex
+            for i in range(3):
+                gi[i] = (
+                    lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]
+                )
+            for v in range(n):
+                g = mu[0, v, 0] * gi[0] + mu[0, v, 1] * gi[1] + mu[0, v, 2] * gi[2]
+                best = max(best, g)
         out[p] = best
     return out
 
@@ -904,7 +1002,9 @@ def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want
         depth: (nv,) material depth per vertex (length).
         weight: (nv,) collocation weight W_a per vertex (area, length^2; one third of the area of
             the boundary triangles around a).
-        tet: (nk, 4) tetrahedra (vertex indices).
+        tet: (nk, 4) or (nk, 5) tetrahedra (vertex indices; a fifth column as in
+            `_area_pairs`: the vertex is tested against, and interpolated in, the
+            sub-tetrahedra around the centroid).
         pair_node, pair_tet: (np,) candidate pairs (vertex index, tetrahedron index).
         penalty: eps (pressure / length).
         want_grad, want_hess: whether to compute gradients and Hessians.
@@ -926,23 +1026,60 @@ def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want
     xt = np.empty((4, 3), dtype=FLOAT)
     xa = np.empty(3, dtype=FLOAT)
     dt = np.empty(4, dtype=FLOAT)
+    acc_g = np.empty(15, dtype=FLOAT)
+    acc_h = np.empty((15, 15), dtype=FLOAT)
     for p in range(npairs):
         node = pair_node[p]
         for r in range(3):
             xa[r] = x[node, r]
-        for a in range(4):
-            v = tet[pair_tet[p], a]
-            dt[a] = depth[v]
-            for r in range(3):
-                xt[a, r] = x[v, r]
-        energy[p] = _collocation_pair(
-            xa, xt, dt, weight[node], penalty, want_grad, want_hess, work, grad, hess, p
-        )
+        k = pair_tet[p]
+        split = _is_split(tet, k)
+        if split:
+            _zero_folded(15, want_grad, want_hess, acc_g, acc_h)
+        e = 0.0
+        # a vertex in a split tetrahedron lies in one of its sub-tetrahedra (in several only
+        # on their common faces, a set of measure zero, as between any two tetrahedra)
+        for s in range(4 if split else 1):
+            _gather_tet(x, depth, tet, k, s, split, xt, dt)
+            es = _collocation_pair(
+                xa, xt, dt, weight[node], penalty, want_grad, want_hess, work, grad, hess, p
+            )
+            e += es
+            if split:
+                _fold_centroid(grad, hess, p, 3, 15, s, want_grad, want_hess, acc_g, acc_h)
+        if split:
+            _store_folded(grad, hess, p, 15, want_grad, want_hess, acc_g, acc_h)
+        energy[p] = e
     return energy, grad, hess
 
 
+def _one_pair_arrays(
+    x_first: np.ndarray, x_tet: np.ndarray, depth_tet: np.ndarray, centroid_depth: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertex, depth and tetrahedron arrays of a single pair: the first points, then the
+    tetrahedron's four vertices, then (when ``centroid_depth`` is given) the centroid's depth
+    as the fifth column of the tetrahedron."""
+    xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
+    dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
+    nf = x_first.shape[0]
+    x = np.vstack([x_first, xt])
+    depth = np.concatenate([np.zeros(nf, dtype=FLOAT), dt])
+    tet = np.arange(nf, nf + 4, dtype=INDEX).reshape(1, 4)
+    if centroid_depth is not None:
+        centroid_depth = float(centroid_depth)
+        if not (np.isfinite(centroid_depth) and centroid_depth > 0.0):
+            raise ValueError(f"centroid_depth must be a positive length, got {centroid_depth}")
+        depth = np.append(depth, centroid_depth)
+        tet = np.array([[nf, nf + 1, nf + 2, nf + 3, nf + 4]], dtype=INDEX)
+    return x, depth, tet
+
+
 def pair_energy(
-    x_tri: np.ndarray, x_tet: np.ndarray, depth_tet: np.ndarray, penalty: float
+    x_tri: np.ndarray,
+    x_tet: np.ndarray,
+    depth_tet: np.ndarray,
+    penalty: float,
+    centroid_depth: float | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Area-integrated penalty energy of one (triangle, tetrahedron) pair, exact derivatives.
 
@@ -951,6 +1088,10 @@ def pair_energy(
         x_tet: (4, 3) current tetrahedron vertex coordinates (length).
         depth_tet: (4,) material depths of the tetrahedron vertices (length).
         penalty: eps (pressure / length).
+        centroid_depth: if given (length, > 0), the tetrahedron is split into four
+            sub-tetrahedra around its centroid, which carries this depth (the remedy the
+            contact operator applies to tetrahedra whose four vertices have depth 0); the
+            derivatives are still over the 7 vertices.
 
     Returns:
         ``(E, grad, hess)``: energy ``(eps/2) int_{T cap K} g^2 dA`` (energy), gradient (21,)
@@ -958,12 +1099,9 @@ def pair_energy(
         interleaved.
     """
     xs = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
-    xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
-    dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
-    x = np.vstack([xs, xt])
-    depth = np.concatenate([np.zeros(3, dtype=FLOAT), dt])
+    x, depth, tet = _one_pair_arrays(xs, x_tet, depth_tet, centroid_depth)
     one = np.zeros(1, dtype=INDEX)
-    energy, grad, hess = _area_pairs(x, depth, _ONE_TRI, _ONE_TET, one, one, penalty, True, True)
+    energy, grad, hess = _area_pairs(x, depth, _ONE_TRI, tet, one, one, penalty, True, True)
     return float(energy[0]), grad[0], hess[0]
 
 
@@ -973,6 +1111,7 @@ def collocation_energy(
     depth_tet: np.ndarray,
     weight: float,
     penalty: float,
+    centroid_depth: float | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Point-collocation penalty energy of one (vertex, tetrahedron) pair, exact derivatives.
 
@@ -982,19 +1121,15 @@ def collocation_energy(
         depth_tet: (4,) material depths of the tetrahedron vertices (length).
         weight: W_a, the area the vertex represents (length^2).
         penalty: eps (pressure / length).
+        centroid_depth: as in :func:`pair_energy` (split around the centroid).
 
     Returns:
         ``(E, grad, hess)``: ``(eps/2) W g(x_a)^2`` if the vertex is in the tetrahedron, else 0;
         gradient (15,) and Hessian (15, 15) over the vertex then tetrahedron coordinates.
     """
-    xa = np.ascontiguousarray(x_node, dtype=FLOAT).reshape(3)
-    xt = np.ascontiguousarray(x_tet, dtype=FLOAT).reshape(4, 3)
-    dt = np.ascontiguousarray(depth_tet, dtype=FLOAT).reshape(4)
-    x = np.vstack([xa, xt])
-    depth = np.concatenate([np.zeros(1, dtype=FLOAT), dt])
+    xa = np.ascontiguousarray(x_node, dtype=FLOAT).reshape(1, 3)
+    x, depth, tet = _one_pair_arrays(xa, x_tet, depth_tet, centroid_depth)
     weights = np.full(5, weight, dtype=FLOAT)
     zero = np.zeros(1, dtype=INDEX)
-    energy, grad, hess = _collocation_pairs(
-        x, depth, weights, _ONE_TET - 2, zero, zero, penalty, True, True
-    )
+    energy, grad, hess = _collocation_pairs(x, depth, weights, tet, zero, zero, penalty, True, True)
     return float(energy[0]), grad[0], hess[0]

@@ -20,6 +20,7 @@ in the global block numbering of its index map; the dof of component c of vertex
 from __future__ import annotations
 
 import typing
+import warnings
 
 from mpi4py import MPI
 from mpi4py.util.dtlib import from_numpy_dtype
@@ -34,12 +35,26 @@ from fenics_matdepth.contact.kernels import (
     _area_pairs_max_depth,
     _collocation_pairs,
 )
-from fenics_matdepth.depth import _check_mesh, _p1_dof_coordinates, owned_exterior_facets
+from fenics_matdepth.depth import (
+    DepthDeficiency,
+    _check_mesh,
+    _p1_dof_coordinates,
+    boundary_triangles,
+    count_depth_deficient,
+    depth_deficient_tets,
+    distance_to_triangles,
+    owned_exterior_facets,
+)
 from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
-__all__ = ["ContactOperator", "propose_penalty"]
+__all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
 _INTEGRATIONS = ("area", "collocation")
+
+
+class DepthDeficiencyWarning(UserWarning):
+    """Some tetrahedra have material depth 0 at all four vertices (see
+    :func:`fenics_matdepth.depth.depth_deficient_tets`)."""
 
 
 def _allgather_rows(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
@@ -67,6 +82,12 @@ class ContactOperator:
         margin: inflation (L) of the triangle boxes used to find candidate pairs for the matrix
             sparsity pattern, so that the pattern survives motion of up to about ``margin``;
             default: one tenth of the mean boundary edge length.
+        split_deficient: give every depth-deficient tetrahedron (all four vertices at depth 0,
+            so depth 0 everywhere inside: layers one element thick, edges and corners of
+            coarse meshes) an interior depth by evaluating it as four sub-tetrahedra around
+            its centroid, which gets its exact distance to the boundary (default). The mesh
+            and the function spaces are untouched; ``False`` keeps the plain P1 depth, through
+            which a surface entering such a tetrahedron passes without force.
 
     Typical use in a Newton loop: ``update()`` at each iterate, then ``add_residual(b)`` and
     ``add_jacobian(A, bcs)`` after dolfinx has assembled the bulk terms into ``b`` and ``A``;
@@ -80,6 +101,7 @@ class ContactOperator:
         penalty: float,
         integration: typing.Literal["area", "collocation"] = "area",
         margin: float | None = None,
+        split_deficient: bool = True,
     ):
         V = u.function_space
         mesh = V.mesh
@@ -156,6 +178,8 @@ class ContactOperator:
         # Bodies: connected components of the mesh (vertices linked through tetrahedra).
         self.num_bodies, self.body_of_vertex = _connected_components(self.num_vertices, self._tets)
 
+        self._setup_deficient(mesh, cells[:n_cells_owned], depth_block, X_local, split_deficient)
+
         self._bc_mask = np.zeros(3 * self.num_vertices, dtype=bool)
         self._x = self._X.copy()
         self._u_last: np.ndarray | None = None
@@ -165,6 +189,62 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None
         self._cache: dict[str, typing.Any] = {}
         self.update()
+
+    def _setup_deficient(
+        self,
+        mesh: dolfinx.mesh.Mesh,
+        owned_cells: np.ndarray,
+        depth_block: np.ndarray,
+        X_local: np.ndarray,
+        split: bool,
+    ) -> None:
+        """Count the depth-deficient tetrahedra and set up the kernels' tetrahedron and depth
+        arrays (``_kernel_tets``, ``_kernel_depth``).
+
+        A deficient tetrahedron (four vertices at depth 0) is split, inside the kernels, into
+        four sub-tetrahedra around its centroid; the fifth column of ``_kernel_tets`` gives the
+        index in ``_kernel_depth`` of the centroid's depth, its exact reference distance to
+        the exterior boundary (-1: not split). Without deficient tetrahedra (or with
+        ``split=False``) the kernels get the plain arrays, and nothing changes.
+        """
+        self.split_deficient = bool(split)
+        self.depth_deficiency: DepthDeficiency = count_depth_deficient(self._tets, self._depth)
+        self._kernel_tets = self._tets
+        self._kernel_depth = self._depth
+        self.num_split_tets = 0
+        if self.depth_deficiency.deficient and self.comm.rank == 0:
+            n, m = self.depth_deficiency
+            what = (
+                "each is split around its centroid inside the contact operator, which is given "
+                "its exact distance to the boundary (split_deficient=True); meshing thin layers "
+                "with two or more elements across avoids the split"
+                if split
+                else "surfaces entering them feel no contact force (split_deficient=False): "
+                "use split_deficient=True (the default) or mesh thin layers with two or more "
+                "elements across"
+            )
+            warnings.warn(
+                f"{n} of the {m} tetrahedra touching the boundary ({n / m:.1%}) have all four "
+                f"vertices on the boundary, hence material depth 0 everywhere; {what}",
+                DepthDeficiencyWarning,
+                stacklevel=3,
+            )
+        if not (split and self.depth_deficiency.deficient):
+            return
+        # each rank computes the centroid depths of the deficient tetrahedra it owns
+        mask = depth_deficient_tets(owned_cells, depth_block)
+        centroids = X_local[owned_cells[mask]].mean(axis=1)
+        aux = np.zeros(owned_cells.shape[0], dtype=FLOAT)
+        triangles = boundary_triangles(mesh)  # collective
+        if centroids.shape[0]:
+            aux[mask] = distance_to_triangles(centroids, triangles)
+        aux = _allgather_rows(self.comm, aux)  # global cell order, as self._tets
+        split_cells = np.flatnonzero(aux > 0.0)
+        self.num_split_tets = int(split_cells.size)
+        column = np.full(self._tets.shape[0], -1, dtype=INDEX)
+        column[split_cells] = self.num_vertices + np.arange(split_cells.size, dtype=INDEX)
+        self._kernel_tets = np.ascontiguousarray(np.hstack((self._tets, column[:, None])))
+        self._kernel_depth = np.concatenate((self._depth, aux[split_cells]))
 
     # -- geometry -------------------------------------------------------------------------
 
@@ -217,15 +297,17 @@ class ContactOperator:
             if have in self._cache:
                 return self._cache[have]
         if self.integration == "area":
+            # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
+            # still comes out over its 7 original vertices
             active, energy, grad, hess = _area_pairs_active(
-                self._x, self._depth, self._tri, self._tets, self._pair_a, self._pair_k,
-                self.penalty, want_grad, want_hess,
+                self._x, self._kernel_depth, self._tri, self._kernel_tets, self._pair_a,
+                self._pair_k, self.penalty, want_grad, want_hess,
             )  # fmt: skip
             verts = np.hstack((self._tri[self._pair_a[active]], self._tets[self._pair_k[active]]))
         else:
             energy, grad, hess = _collocation_pairs(
-                self._x, self._depth, self._weight, self._tets, self._nodes[self._pair_a],
-                self._pair_k, self.penalty, want_grad, want_hess,
+                self._x, self._kernel_depth, self._weight, self._kernel_tets,
+                self._nodes[self._pair_a], self._pair_k, self.penalty, want_grad, want_hess,
             )  # fmt: skip
             verts = np.hstack((self._nodes[self._pair_a, None], self._tets[self._pair_k]))
         dofs = (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], 3 * verts.shape[1])
@@ -413,7 +495,7 @@ class ContactOperator:
         if self.integration == "area":
             active = r["active"]
             g = _area_pairs_max_depth(
-                self._x, self._depth, self._tri, self._tets, self._pair_a[active],
+                self._x, self._kernel_depth, self._tri, self._kernel_tets, self._pair_a[active],
                 self._pair_k[active],
             )  # fmt: skip
         else:
@@ -439,11 +521,19 @@ class ContactOperator:
 
         Returns:
             ``candidate_pairs`` and ``active_pairs`` (global counts; active = non-zero
-            energy), ``energy`` (F L), ``max_penetration`` (L, see :meth:`max_penetration`)
-            and ``force_resultant``, the net contact force on each body, ``(num_bodies, 3)``.
+            energy), ``energy`` (F L), ``max_penetration`` (L, see :meth:`max_penetration`),
+            ``force_resultant``, the net contact force on each body, ``(num_bodies, 3)``, and
+            the depth-deficient tetrahedra (all four vertices at depth 0): their number
+            ``deficient_tets``, the number of tetrahedra touching the boundary
+            ``boundary_adjacent_tets``, the ratio ``deficient_fraction`` and ``split_tets``,
+            how many the operator splits around their centroid (see ``split_deficient``).
         """
         r = self._evaluate(True, False)
         return {
+            "deficient_tets": self.depth_deficiency.deficient,
+            "boundary_adjacent_tets": self.depth_deficiency.boundary_adjacent,
+            "deficient_fraction": self.depth_deficiency.fraction,
+            "split_tets": self.num_split_tets,
             "candidate_pairs": self.comm.allreduce(int(self._pair_a.size)),
             "active_pairs": self.comm.allreduce(int(np.count_nonzero(r["energy"] > 0.0))),
             "energy": self.energy(),
@@ -473,7 +563,14 @@ def propose_penalty(
     penetrates ``g = p / eps = (p / modulus) h / factor``: ``1 / factor`` of the compression that
     pressure causes across one element of size ``h``. Between two deformable bodies both
     surfaces enter the other body and both terms carry the load, so the overlap is about
-    ``p / (2 eps)`` (the patch test in ``tests/test_validation.py`` checks this). The contact
+    ``p / (2 eps)`` (the patch test in ``tests/test_validation.py`` checks this). At the edges
+    and corners of the contact zone the other body's depth falls to 0 at its side faces, so
+    only one surface pushes there and the overlap rises, within about one element of the
+    edge, towards ``p / eps``: measured under a block on a larger block (soft penalty,
+    ``tests/test_thin_layers.py``), 0.47 p/eps inside the footprint, 0.58-0.62 p/eps at its
+    edge vertices and 0.60-0.65 p/eps at its corners (without the centroid split of
+    depth-deficient tetrahedra, up to 1.17 p/eps on the sides where the mesh has them). A
+    stiffer penalty adds the elastic stress concentration at the edges on top. The contact
     stiffness of a surface vertex (about ``eps h^2``) is ``factor`` times the stiffness of its
     element (about ``modulus h``). Larger factors reduce penetration but worsen conditioning;
     10 to 100 suits the Newton solver with a direct linear solver.
