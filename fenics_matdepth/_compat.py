@@ -10,6 +10,7 @@ import dolfinx
 __all__ = [
     "DOLFINX_VERSION",
     "NewtonSolverProblemBase",
+    "bc_constrains_space",
     "create_tetrahedral_mesh",
     "geometry_cmap",
     "geometry_dofmap",
@@ -200,3 +201,14 @@ def interpolation_points(V):
     """
     points = V.element.interpolation_points
     return points() if callable(points) else points
+
+
+def bc_constrains_space(bc, V) -> bool:
+    """Whether the Dirichlet condition ``bc`` constrains ``V`` or one of its subspaces.
+
+    ``DirichletBC.function_space`` is a C++ space on DOLFINx 0.9 and a Python one later; the
+    comparison goes through the C++ objects.
+    """
+    space = bc.function_space
+    space = getattr(space, "_cpp_object", space)
+    return bool(V._cpp_object.contains(space))

@@ -1,0 +1,229 @@
+"""Input validation and element checks, in one place.
+
+Every check here is collective where it looks at distributed data: each rank tests its own
+part and the ranks agree (``allreduce``) before anything is raised, so an error is raised on
+every rank and no rank is left waiting in a collective call.
+
+* :func:`check_mesh`: the mesh is a dolfinx mesh of affine tetrahedra in 3D.
+* :func:`check_mesh_quality`: finite coordinates, no degenerate (zero-volume) tetrahedron, no
+  tetrahedron folded over a neighbour (an inverted element of a tangled mesh).
+* :class:`CellDeterminants`: the smallest ``det F`` over the cells of a P1 displacement, a cheap
+  per-cell evaluation used to reject trial states that invert elements.
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+
+from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
+
+__all__ = [
+    "CellDeterminants",
+    "check_function_space",
+    "check_mesh",
+    "check_mesh_quality",
+    "collective_error",
+]
+
+#: A tetrahedron whose volume is below this fraction of (its longest edge)^3 counts as
+#: degenerate (a regular tetrahedron has about 0.118).
+DEGENERATE_VOLUME_RATIO = 1e-10
+
+
+def collective_error(comm: MPI.Comm, message: str | None, error: type = ValueError) -> None:
+    """Raise ``error`` on every rank if any rank has a ``message`` (the first one found).
+
+    Args:
+        comm: communicator of the ranks that must agree.
+        message: this rank's error message, or None if this rank found nothing wrong.
+        error: exception class raised.
+    """
+    messages = comm.allgather(message)
+    first = next((m for m in messages if m is not None), None)
+    if first is not None:
+        raise error(first)
+
+
+def check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
+    """The mesh must be a dolfinx mesh of affine (straight-sided) tetrahedra in 3D.
+
+    Raises:
+        TypeError: if ``mesh`` is not a ``dolfinx.mesh.Mesh``.
+        ValueError: for other cells, another geometric dimension or curved geometry.
+    """
+    if not isinstance(mesh, dolfinx.mesh.Mesh):
+        raise TypeError(
+            f"expected a dolfinx.mesh.Mesh, got {type(mesh).__name__}: pass the mesh itself "
+            "(e.g. u.function_space.mesh)"
+        )
+    cell_type = mesh.topology.cell_type
+    if cell_type != dolfinx.mesh.CellType.tetrahedron:
+        raise ValueError(
+            f"material-depth contact needs a tetrahedral mesh, got {cell_type.name} cells: mesh "
+            "the bodies with tetrahedra (e.g. create_box(..., CellType.tetrahedron) or gmsh 3D)"
+        )
+    if mesh.geometry.dim != 3:
+        raise ValueError(
+            f"material-depth contact needs a 3D geometry, got gdim={mesh.geometry.dim}: create "
+            "the mesh with three coordinates per vertex"
+        )
+    degree = geometry_cmap(mesh).degree
+    if degree != 1:
+        raise ValueError(
+            f"material-depth contact needs affine (degree-1) geometry, got a degree-{degree} "
+            "coordinate element: generate the mesh with straight-sided tetrahedra "
+            "(gmsh: model.mesh.setOrder(1))"
+        )
+
+
+def _cell_vertex_coordinates(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """(num local cells, 4, 3) vertex coordinates of the owned and ghost cells."""
+    nodes = np.asarray(geometry_dofmap(mesh)).reshape(-1, 4)
+    return np.asarray(mesh.geometry.x[nodes], dtype=np.float64)
+
+
+def _signed_volumes6(x: np.ndarray) -> np.ndarray:
+    """Six times the signed volume of each tetrahedron of ``x`` (n, 4, 3)."""
+    e = x[:, 1:] - x[:, :1]
+    return np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))
+
+
+def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
+    """Finite coordinates, no zero-volume tetrahedron, no tetrahedron folded over a neighbour.
+
+    A tetrahedron is *folded over* (inverted) when it and a neighbour across a shared face
+    lie on the same side of that face: the two overlap, as happens when a vertex of a valid
+    mesh is moved through the opposite face. This test does not depend on the orientation
+    (vertex order) of the cells. Faces shared across the partition boundary are tested where
+    both cells are on one rank (always in serial).
+
+    Raises:
+        ValueError: naming the first bad cell (its reference coordinates) and the fix, on
+            every rank.
+    """
+    check_mesh(mesh)
+    comm = mesh.comm
+    x_all = np.asarray(mesh.geometry.x)
+    message = None
+    if not np.all(np.isfinite(x_all)):
+        bad = x_all[~np.all(np.isfinite(x_all), axis=1)][0]
+        message = (
+            f"the mesh has non-finite vertex coordinates (e.g. {bad.tolist()}): fix the mesh "
+            "file or the code that builds the coordinates"
+        )
+    collective_error(comm, message)
+
+    x = _cell_vertex_coordinates(mesh)
+    num_owned = mesh.topology.index_map(3).size_local
+    vol6 = _signed_volumes6(x)
+    if x.shape[0]:
+        edges = x[:, [1, 2, 3, 2, 3, 3]] - x[:, [0, 0, 0, 1, 1, 2]]
+        longest = np.linalg.norm(edges, axis=2).max(axis=1)
+        flat = np.abs(vol6[:num_owned]) <= 6.0 * DEGENERATE_VOLUME_RATIO * longest[:num_owned] ** 3
+        if np.any(flat):
+            c = int(np.flatnonzero(flat)[0])
+            message = (
+                f"{int(flat.sum())} tetrahedra have (near) zero volume, e.g. the one with vertices "
+                f"{np.round(x[c], 6).tolist()}: remove the degenerate (flat) tetrahedra, e.g. "
+                "re-mesh with gmsh (Mesh.Optimize) or merge duplicate vertices"
+            )
+    collective_error(comm, message)
+
+    # Folded-over cells: the opposite vertices of two cells sharing a face must lie on
+    # opposite sides of the face's plane.
+    mesh.topology.create_connectivity(2, 3)
+    mesh.topology.create_connectivity(3, 2)
+    f2c = mesh.topology.connectivity(2, 3)
+    offsets = np.asarray(f2c.offsets)
+    two = np.flatnonzero(np.diff(offsets) == 2)
+    if two.size:
+        cells = np.asarray(f2c.array)[offsets[two][:, None] + np.arange(2)]
+        c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
+        # the reference tetrahedron's facet i is opposite its vertex i
+        opp = np.stack(
+            [np.argmax(c2f[cells[:, k]] == two[:, None], axis=1) for k in (0, 1)], axis=1
+        )
+        xa = x[cells[:, 0]]
+        face = np.take_along_axis(
+            xa, np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[opp[:, 0]][:, :, None], 1
+        )
+        normal = np.cross(face[:, 1] - face[:, 0], face[:, 2] - face[:, 0])
+        pa = xa[np.arange(two.size), opp[:, 0]]
+        pb = x[cells[:, 1], opp[:, 1]]
+        sa = np.einsum("ij,ij->i", pa - face[:, 0], normal)
+        sb = np.einsum("ij,ij->i", pb - face[:, 0], normal)
+        folded = sa * sb > 0.0
+        if np.any(folded):
+            c = int(cells[np.flatnonzero(folded)[0], 0])
+            message = (
+                f"{int(folded.sum())} interior faces have both their tetrahedra on the same "
+                f"side (an inverted, folded-over element), e.g. at the tetrahedron with vertices "
+                f"{np.round(x[c], 6).tolist()}: the mesh is tangled; re-mesh, or fix the vertex "
+                "that was moved through the opposite face"
+            )
+    collective_error(comm, message)
+
+
+def check_function_space(u: dolfinx.fem.Function, what: str = "u") -> None:
+    """``u`` must be a Function on a P1 (Lagrange degree 1) vector space of dimension 3.
+
+    Raises:
+        TypeError: if ``u`` is not a dolfinx Function.
+        ValueError: for another element, naming it and the space to use.
+    """
+    if not isinstance(u, dolfinx.fem.Function):
+        raise TypeError(
+            f"{what} must be a dolfinx.fem.Function, got {type(u).__name__}: create it with "
+            'dolfinx.fem.Function(functionspace(mesh, ("Lagrange", 1, (3,))))'
+        )
+    V = u.function_space
+    element = V.ufl_element()
+    if V.dofmap.index_map_bs != 3 or element.degree != 1 or len(element.reference_value_shape) != 1:
+        raise ValueError(
+            f"{what} must live on a P1 vector space of dimension 3, got a space of degree "
+            f"{element.degree} with {V.dofmap.index_map_bs} component(s): use "
+            'functionspace(mesh, ("Lagrange", 1, (3,)))'
+        )
+
+
+class CellDeterminants:
+    """Smallest ``det F = det(I + grad u)`` over the cells of a P1 vector displacement.
+
+    On affine tetrahedra ``F`` is constant per cell: ``det F = V_current / V_reference`` with
+    signed volumes from the vertex positions. The reference volumes are kept; each call costs a
+    few vector operations per cell (collective).
+
+    Args:
+        V: the P1 vector space (dimension 3) of the displacement.
+    """
+
+    def __init__(self, V: dolfinx.fem.FunctionSpace):
+        from fenics_matdepth.depth import _p1_dof_coordinates
+
+        mesh = V.mesh
+        self._comm = mesh.comm
+        num_owned = mesh.topology.index_map(3).size_local
+        self._cells = np.asarray(V.dofmap.list).reshape(-1, 4)[:num_owned]
+        self._X = _p1_dof_coordinates(V)
+        self._vol6 = _signed_volumes6(self._X[self._cells])
+
+    def local_min(self, u_local: np.ndarray) -> float:
+        """This rank's smallest det F for the local (owned + ghost) displacement values."""
+        if self._cells.shape[0] == 0:
+            return np.inf
+        x = self._X + np.asarray(u_local).reshape(-1, 3)
+        det = _signed_volumes6(x[self._cells]) / self._vol6
+        value = float(det.min())
+        return value if np.isfinite(value) else -np.inf
+
+    def min(self, u: dolfinx.fem.Function | np.ndarray) -> float:
+        """Smallest det F over all cells (collective); NaN displacements give ``-inf``.
+
+        Args:
+            u: the displacement Function (ghost values current), or its local array.
+        """
+        values = u.x.array if isinstance(u, dolfinx.fem.Function) else u
+        return self._comm.allreduce(self.local_min(values), op=MPI.MIN)
