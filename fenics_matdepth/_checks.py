@@ -22,11 +22,19 @@ from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
 
 __all__ = [
     "CellDeterminants",
+    "check_contact_mesh",
+    "check_contact_state",
     "check_function_space",
+    "check_manifold_boundary",
     "check_mesh",
     "check_mesh_quality",
     "collective_error",
 ]
+
+#: Material depth (relative to the mean boundary edge) above which a boundary triangle is
+#: counted as inside another tetrahedron in the reference configuration; below it, coincident
+#: surfaces touch (round-off of the barycentric coordinates gives depths of about 1e-16).
+OVERLAP_DEPTH_RTOL = 1e-6
 
 #: A tetrahedron whose volume is below this fraction of (its longest edge)^3 counts as
 #: degenerate (a regular tetrahedron has about 0.118).
@@ -165,6 +173,149 @@ def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
                 "that was moved through the opposite face"
             )
     collective_error(comm, message)
+
+
+def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """Global vertex indices (topology numbering) of all exterior triangles, on every rank."""
+    from fenics_matdepth.contact.operator import _allgather_rows
+    from fenics_matdepth.depth import owned_exterior_facets
+
+    facets = owned_exterior_facets(mesh)
+    mesh.topology.create_connectivity(2, 0)
+    f2v = np.asarray(mesh.topology.connectivity(2, 0).array).reshape(-1, 3)
+    local = f2v[facets]
+    imap = mesh.topology.index_map(0)
+    glob = imap.local_to_global(local.ravel().astype(np.int32)).reshape(-1, 3)
+    return _allgather_rows(mesh.comm, glob.astype(np.int64))
+
+
+def check_manifold_boundary(mesh: dolfinx.mesh.Mesh) -> None:
+    """Every boundary edge must bound exactly two boundary triangles, and the boundary
+    triangles around each boundary vertex must form one fan (collective).
+
+    Two tetrahedra (or bodies) that share only an edge or only a vertex make the boundary
+    non-manifold there: the material depth and the triangle-tetrahedron pairs cannot tell the
+    two sides apart.
+
+    Raises:
+        ValueError: on every rank, with the number of non-manifold edges and vertices and one
+            location.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tri = _gathered_boundary_triangles(mesh)
+    if tri.shape[0] == 0:
+        return
+    m = tri.shape[0]
+    edges = np.sort(tri[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, inverse, counts = np.unique(
+        edges[:, 0] * (tri.max() + 1) + edges[:, 1], return_inverse=True, return_counts=True
+    )
+    bad_edges = counts != 2
+    # Fans: incidences (vertex, triangle) linked when the two triangles share an edge through
+    # the vertex; a manifold vertex has one connected fan.
+    incidence = np.arange(3 * m).reshape(m, 3)  # incidence of corner c of triangle t
+    owner_tri = np.repeat(np.arange(m), 3)
+    corner = np.array([[0, 1], [1, 2], [2, 0]])
+    a_idx, b_idx = [], []
+    order = np.argsort(inverse, kind="stable")
+    starts = np.cumsum(np.r_[0, counts])[:-1]
+    pairs = starts[counts == 2]
+    e1, e2 = order[pairs], order[pairs + 1]  # the two edge slots of each two-sided edge
+    for k in (0, 1):
+        v1 = tri[owner_tri[e1], corner[e1 % 3, k]]
+        # the same vertex's corner in the other triangle
+        t2 = owner_tri[e2]
+        c2 = np.argmax(tri[t2] == v1[:, None], axis=1)
+        a_idx.append(incidence[owner_tri[e1], corner[e1 % 3, k]])
+        b_idx.append(incidence[t2, c2])
+    a_idx, b_idx = np.concatenate(a_idx), np.concatenate(b_idx)
+    graph = coo_matrix((np.ones(a_idx.size), (a_idx, b_idx)), shape=(3 * m, 3 * m))
+    _, label = connected_components(graph, directed=False)
+    vertex = tri.ravel()
+    fans = np.unique(np.stack((vertex, label), axis=1), axis=0)
+    vertices, fan_counts = np.unique(fans[:, 0], return_counts=True)
+    bad_vertices = vertices[fan_counts > 1]
+    if np.any(bad_edges) or bad_vertices.size:
+        raise ValueError(
+            f"the boundary is non-manifold: {int(bad_edges.sum())} edges bound other than two "
+            f"boundary triangles and {bad_vertices.size} vertices join separate boundary fans "
+            "(tetrahedra or bodies that touch only along an edge or at a vertex). Material-depth "
+            "contact needs every body bounded by a closed surface: duplicate the shared "
+            "vertices so that the bodies are separate pieces of the mesh, or glue them along "
+            "whole faces"
+        )
+
+
+def check_contact_mesh(mesh: dolfinx.mesh.Mesh) -> None:
+    """All mesh checks material-depth contact needs (collective): affine tetrahedra in 3D,
+    finite coordinates, no degenerate or folded-over tetrahedron, a manifold boundary."""
+    check_mesh(mesh)
+    check_mesh_quality(mesh)
+    check_manifold_boundary(mesh)
+
+
+def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
+    """Checks of a new contact operator (collective).
+
+    * Every body (connected component of the mesh) has a vertex with positive material depth;
+      otherwise nothing can push out of it (a single tetrahedron, a layer one element thick).
+    * No boundary triangle lies inside a tetrahedron of the mesh in the reference
+      configuration (u = 0): the operator's own pair search and pair kernels at u = 0, between
+      different bodies or within one. Bodies that overlap in the reference configuration get
+      a wrong material depth (each one's surface counts as boundary inside the other).
+      Surfaces that coincide without being glued touch with zero depth and pass.
+
+    Args:
+        contact: the :class:`~fenics_matdepth.ContactOperator`.
+        allow_reference_overlap: skip the overlap check (for tests that start intersected on
+            purpose).
+
+    Raises:
+        ValueError: on every rank, naming the problem and the fix.
+    """
+    from fenics_matdepth.contact.kernels import _area_pairs_active, _area_pairs_max_depth
+    from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+
+    deepest = np.zeros(contact.num_bodies)
+    np.maximum.at(deepest, contact.body_of_vertex, contact._depth)
+    shallow = np.flatnonzero(deepest <= 0.0)
+    if shallow.size:
+        raise ValueError(
+            f"{shallow.size} of the {contact.num_bodies} bodies have no vertex inside them "
+            "(material depth zero everywhere, e.g. a single tetrahedron or a layer one element "
+            "thick), so contact cannot push anything out of them: refine the mesh so that each "
+            "body has interior vertices (at least two elements through its thickness)"
+        )
+    if allow_reference_overlap:
+        return
+    X, tri, tets = contact._X, contact._tri, contact._tets
+    tree = AABBTree(X, tets)
+    lo, hi = element_boxes(X, tri)
+    pa, pk = tree.query_boxes(lo, hi)
+    pa, pk = exclude_shared_vertex_pairs(tri, tets, pa, pk)
+    active, _, _, _ = _area_pairs_active(
+        X, contact._depth, tri, tets, pa, pk, contact.penalty, False, False
+    )
+    pa, pk = pa[active], pk[active]
+    g = _area_pairs_max_depth(X, contact._depth, tri, tets, pa, pk)
+    tolerance = OVERLAP_DEPTH_RTOL * 10.0 * contact.margin
+    inside = g > tolerance
+    count = contact.comm.allreduce(int(np.count_nonzero(inside)))
+    if count:
+        bodies = contact.body_of_vertex
+        between = inside & (bodies[tri[pa, 0]] != bodies[tets[pk, 0]])
+        n_between = contact.comm.allreduce(int(np.count_nonzero(between)))
+        deepest_g = contact.comm.allreduce(float(g.max(initial=0.0)), op=MPI.MAX)
+        raise ValueError(
+            f"the bodies overlap in the reference configuration: {count} boundary triangle / "
+            f"tetrahedron pairs intersect at u = 0 ({n_between} between different bodies, "
+            f"{count - n_between} within one body), up to a material depth of {deepest_g:.3g}. "
+            "The material depth is then wrong. Move the bodies apart in the mesh (start them "
+            "touching or separated and press them together with the load), or pass "
+            "allow_reference_overlap=True if the overlap is intended"
+        )
 
 
 def check_function_space(u: dolfinx.fem.Function, what: str = "u") -> None:

@@ -28,13 +28,14 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
+from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import (
     _area_pairs_active,
     _area_pairs_max_depth,
     _collocation_pairs,
 )
-from fenics_matdepth.depth import _check_mesh, _p1_dof_coordinates, owned_exterior_facets
+from fenics_matdepth.depth import _p1_dof_coordinates, owned_exterior_facets
 from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
 __all__ = ["ContactOperator", "propose_penalty"]
@@ -67,6 +68,8 @@ class ContactOperator:
         margin: inflation (L) of the triangle boxes used to find candidate pairs for the matrix
             sparsity pattern, so that the pattern survives motion of up to about ``margin``;
             default: one tenth of the mean boundary edge length.
+        allow_reference_overlap: accept bodies that overlap in the reference configuration
+            (by default a ``ValueError``: their material depth is wrong).
 
     Typical use in a Newton loop: ``update()`` at each iterate, then ``add_residual(b)`` and
     ``add_jacobian(A, bcs)`` after dolfinx has assembled the bulk terms into ``b`` and ``A``;
@@ -80,10 +83,11 @@ class ContactOperator:
         penalty: float,
         integration: typing.Literal["area", "collocation"] = "area",
         margin: float | None = None,
+        allow_reference_overlap: bool = False,
     ):
         V = u.function_space
         mesh = V.mesh
-        _check_mesh(mesh)
+        check_contact_mesh(mesh)
         if V.dofmap.index_map_bs != 3 or V.ufl_element().degree != 1:
             raise ValueError(
                 "ContactOperator needs u on a P1 vector space of dimension 3, e.g. "
@@ -165,6 +169,7 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None
         self._cache: dict[str, typing.Any] = {}
         self.update()
+        check_contact_state(self, allow_reference_overlap)
 
     # -- geometry -------------------------------------------------------------------------
 
