@@ -723,7 +723,9 @@ class LoadStep:
         iterations: Newton iterations of the converged solve.
         residual_norms: its residual history.
         cuts: failed attempts (step halvings) before this step converged.
-        diagnostics: ``contact.diagnostics()`` after the step.
+        diagnostics: ``contact.diagnostics()`` after the step, plus ``min_det_F`` (smallest
+            det F over the cells) and ``rejected_states`` (inadmissible trial states the solve
+            rejected).
         seconds: wall time of the step, failed attempts included.
     """
 

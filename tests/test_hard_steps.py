@@ -157,6 +157,25 @@ def test_inverting_trial_state_is_rejected():
         assert _min_det_F_ufl(problem.u) > 0.0
 
 
+def test_load_step_cut_after_repeated_rejection():
+    """Indented by 90 % of the thickness in one step, the line search keeps rejecting inverted
+    trial states and gives up; solve_load_steps then cuts the step and reaches the load."""
+    comm = MPI.COMM_WORLD
+    problem = _indented_block(comm, "snes", 0.45)
+    result = problem.solve(raise_on_failure=False)
+    assert not result.converged and result.rejected_states >= 1, result
+    problem.u.x.array[:] = 0.0
+    g = problem.bcs[1].g
+
+    def set_load(t):
+        g.x.array.reshape(-1, 3)[:, 2] = -0.45 * t
+
+    steps = fm.solve_load_steps(problem, set_load, num_steps=1, progress=False)
+    assert steps[0].cuts >= 1 and np.isclose(steps[-1].load, 1.0)
+    assert all(s.diagnostics["min_det_F"] > 0.0 for s in steps)
+    assert np.isclose(steps[-1].diagnostics["min_det_F"], _min_det_F_ufl(problem.u), rtol=1e-10)
+
+
 def test_predictor_reaches_the_same_solution():
     """Extrapolating the last increment changes the starting states, not the solutions."""
     comm = MPI.COMM_WORLD
