@@ -11,10 +11,12 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from fenics_matdepth import contact, geometry, materials
+from fenics_matdepth import checkpoint, contact, geometry, materials
+from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import depth_deficiency, material_depth
 from fenics_matdepth.solvers import (
+    ContactAssembler,
     ContactProblem,
     LoadStep,
     NonlinearContactProblem,
@@ -23,12 +25,15 @@ from fenics_matdepth.solvers import (
 )
 
 __all__ = [
+    "Checkpoint",
+    "ContactAssembler",
     "ContactOperator",
     "ContactProblem",
     "LoadStep",
     "NonlinearContactProblem",
     "SolveResult",
     "__version__",
+    "checkpoint",
     "contact",
     "depth_deficiency",
     "geometry",

@@ -10,6 +10,7 @@ import dolfinx
 __all__ = [
     "DOLFINX_VERSION",
     "NewtonSolverProblemBase",
+    "bc_constrains_space",
     "create_tetrahedral_mesh",
     "geometry_cmap",
     "geometry_dofmap",
@@ -172,25 +173,45 @@ def geometry_dofmap(mesh):
     return dofmaps[0] if dofmaps is not None else geometry.dofmap
 
 
-def create_tetrahedral_mesh(comm, cells, x):
-    """An affine tetrahedral mesh from vertex coordinates and cells (rank 0's data is used).
+def create_tetrahedral_mesh(comm, cells, x, degree: int = 1, all_cells_on_rank0: bool = False):
+    """A tetrahedral mesh from node coordinates and cells (rank 0's data is used).
 
     ``dolfinx.mesh.create_mesh`` takes ``(comm, cells, x, element)`` on 0.9 and
-    ``(comm, cells, element, x)`` from 0.10 on.
+    ``(comm, cells, element, x)`` from 0.10 on; a custom partitioner must return the C++
+    adjacency list from 0.10 on.
+
+    Args:
+        comm: communicator of the mesh.
+        cells: (n, 4) vertex indices (degree 1) or (n, 10) node indices (degree 2, DOLFINx
+            node order).
+        x: (m, 3) node coordinates.
+        degree: degree of the coordinate element.
+        all_cells_on_rank0: keep every cell on rank 0 (the other ranks get none).
     """
     import basix.ufl
     import numpy as np
     import ufl
 
-    element = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
+    element = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", degree, shape=(3,)))
+    nodes_per_cell = np.asarray(cells).shape[1]
     if comm.rank != 0:
-        cells = np.empty((0, 4), dtype=np.int64)
+        cells = np.empty((0, nodes_per_cell), dtype=np.int64)
         x = np.empty((0, 3), dtype=np.float64)
     cells = np.asarray(cells, dtype=np.int64)
     x = np.asarray(x, dtype=np.float64)
+    kwargs = {}
+    if all_cells_on_rank0:
+
+        def to_rank0(comm, nparts, cell_types, local_cells):
+            # the partitioner sees the topology (4 vertices per cell), whatever the degree
+            n = np.asarray(local_cells[0]).size // 4 if local_cells else 0
+            dest = dolfinx.graph.adjacencylist(np.zeros(n, dtype=np.int32))
+            return getattr(dest, "_cpp_object", dest)
+
+        kwargs["partitioner"] = to_rank0
     if DOLFINX_VERSION >= (0, 10):
-        return dolfinx.mesh.create_mesh(comm, cells, element, x)
-    return dolfinx.mesh.create_mesh(comm, cells, x, element)
+        return dolfinx.mesh.create_mesh(comm, cells, element, x, **kwargs)
+    return dolfinx.mesh.create_mesh(comm, cells, x, element, **kwargs)
 
 
 def interpolation_points(V):
@@ -200,3 +221,14 @@ def interpolation_points(V):
     """
     points = V.element.interpolation_points
     return points() if callable(points) else points
+
+
+def bc_constrains_space(bc, V) -> bool:
+    """Whether the Dirichlet condition ``bc`` constrains ``V`` or one of its subspaces.
+
+    ``DirichletBC.function_space`` is a C++ space on DOLFINx 0.9 and a Python one later; the
+    comparison goes through the C++ objects.
+    """
+    space = bc.function_space
+    space = getattr(space, "_cpp_object", space)
+    return bool(V._cpp_object.contains(space))

@@ -22,7 +22,8 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
+from fenics_matdepth._checks import check_contact_mesh, check_mesh
+from fenics_matdepth._compat import geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.bvh import AABBTree
 
@@ -98,27 +99,8 @@ def distance_to_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarr
     return d
 
 
-def _check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
-    if not isinstance(mesh, dolfinx.mesh.Mesh):
-        raise TypeError(
-            f"material_depth expects a dolfinx.mesh.Mesh, got {type(mesh).__name__}: pass the "
-            "mesh itself (e.g. u.function_space.mesh)"
-        )
-    cell_type = mesh.topology.cell_type
-    if cell_type != dolfinx.mesh.CellType.tetrahedron:
-        raise ValueError(
-            f"material_depth needs a tetrahedral mesh, got {cell_type.name} cells: mesh the "
-            "bodies with tetrahedra (e.g. create_box(..., CellType.tetrahedron) or gmsh 3D)"
-        )
-    if mesh.geometry.dim != 3:
-        raise ValueError(f"material_depth needs a 3D geometry, got gdim={mesh.geometry.dim}")
-    degree = geometry_cmap(mesh).degree
-    if degree != 1:
-        raise ValueError(
-            f"material_depth needs affine (degree-1) geometry, got a degree-{degree} "
-            "coordinate element: generate the mesh with straight-sided tetrahedra "
-            "(gmsh: model.mesh.setOrder(1))"
-        )
+#: Kept for callers of the former private helper; the checks live in ``_checks``.
+_check_mesh = check_mesh
 
 
 def owned_exterior_facets(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
@@ -147,7 +129,7 @@ def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     Returns:
         (m, 3, 3) triangle vertex coordinates (mesh length unit).
     """
-    _check_mesh(mesh)
+    check_mesh(mesh)
     tdim = mesh.topology.dim
     facets = owned_exterior_facets(mesh)
     nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets, False)
@@ -193,10 +175,11 @@ def material_depth(mesh: dolfinx.mesh.Mesh) -> dolfinx.fem.Function:
 
     Raises:
         TypeError: if ``mesh`` is not a dolfinx Mesh.
-        ValueError: for non-tetrahedral cells, non-affine geometry, or a mesh without exterior
-            boundary.
+        ValueError: for non-tetrahedral cells, non-affine geometry, non-finite coordinates,
+            degenerate or folded-over tetrahedra, a non-manifold boundary, or a mesh without
+            exterior boundary (see ``fenics_matdepth._checks``); raised on every rank.
     """
-    _check_mesh(mesh)
+    check_contact_mesh(mesh)
     triangles = boundary_triangles(mesh)
     if triangles.shape[0] == 0:
         raise ValueError(

@@ -15,6 +15,7 @@ Newton iteration, only when a contact coupling falls outside it.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 import typing
 
@@ -26,10 +27,13 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 
-from fenics_matdepth._compat import NewtonSolverProblemBase
+from fenics_matdepth._checks import CellDeterminants, collective_error
+from fenics_matdepth._compat import NewtonSolverProblemBase, bc_constrains_space
+from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator
 
 __all__ = [
+    "ContactAssembler",
     "ContactProblem",
     "LoadStep",
     "NonlinearContactProblem",
@@ -55,6 +59,10 @@ _DEFAULT_OPTIONS = {
 MERIT_SWITCH_RTOL = 1e-5
 STALL_RTOL = 1e-3
 
+#: NonlinearContactProblem halves a Newton step at most this many times while it would
+#: invert an element.
+MAX_STEP_HALVINGS = 30
+
 #: Names of the per-solve time split (seconds) kept in ``ContactProblem.timings``.
 TIMING_KEYS = (
     "bulk_assembly",
@@ -75,12 +83,17 @@ class SolveResult:
             :class:`NonlinearContactProblem` 1 if converged, -1 otherwise.
         iterations: Newton iterations taken.
         residual_norms: residual norm before each iteration and after the last one.
+        rejected_states: trial states rejected because an element inverted (det F <= 0) or the
+            residual or energy was not finite (the step was shortened instead).
+        min_det_F: smallest det F over the cells at the returned state.
     """
 
     converged: bool
     reason: int
     iterations: int
     residual_norms: np.ndarray
+    rejected_states: int = 0
+    min_det_F: float = np.nan
 
     def failure_message(self) -> str:
         """Why the solve failed, with the residual history."""
@@ -112,28 +125,147 @@ class _Stopwatch:
         self.totals[self._key] += time.perf_counter() - self._start
 
 
-def _assemble_residual(b, L, a, bcs, x, contact, watch):
-    """b = F(u) + dE/du with dolfinx's lifting and Dirichlet rows (DOLFINx's residual order)."""
-    with watch("bulk_assembly"):
-        with b.localForm() as b_local:
-            b_local.set(0.0)
-        dolfinx.fem.petsc.assemble_vector(b, L)
-    with watch("contact_assembly"):
-        contact.add_residual(b)
-    with watch("bulk_assembly"):
-        dolfinx.fem.petsc.apply_lifting(b, [a], [bcs], x0=[x], alpha=-1.0)
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        dolfinx.fem.petsc.set_bc(b, bcs, x, -1.0)
+class ContactAssembler:
+    """The residual ``F(u) + dE/du`` and Jacobian ``dF/du + d2E/du2`` of one problem.
 
+    Both problems (:class:`ContactProblem` for SNES, :class:`NonlinearContactProblem` for the
+    DOLFINx ``NewtonSolver``) assemble through this one object, so any change to the assembly
+    reaches both. It owns the Jacobian matrix (bulk + contact pattern) and rebuilds it when a
+    contact coupling leaves the pattern; it also tells whether a state is admissible (every
+    element keeps ``det F > 0`` and the residual is finite).
 
-def _assemble_jacobian(A, a, bcs, contact, watch):
-    """A = dF/du + d2E/du2, Dirichlet rows and columns as dolfinx sets them."""
-    with watch("bulk_assembly"):
-        A.zeroEntries()
-        dolfinx.fem.petsc.assemble_matrix(A, a, bcs)
-        A.assemble()
-    with watch("contact_assembly"):
-        contact.add_jacobian(A)
+    The residual follows DOLFINx's order (zero, ``assemble_vector``, contact, ``apply_lifting``
+    at the current iterate ``x``, reverse ghost update, ``set_bc(b, bcs, x, -1)``): Dirichlet
+    rows hold ``x - g``, so the Newton step moves the Dirichlet dofs onto their values and the
+    interior follows the linearisation (the boundary values are never written into the
+    iterate ahead of the step, which would invert the elements next to a boundary moved by
+    more than their height).
+
+    Args:
+        L: compiled residual form.
+        a: compiled Jacobian form.
+        u: the unknown displacement (the Function the contact operator was built on).
+        contact: the contact operator of ``u``.
+        bcs: Dirichlet conditions.
+        energy: optional compiled energy functional (bulk part of the total energy).
+    """
+
+    def __init__(
+        self,
+        L: dolfinx.fem.Form,
+        a: dolfinx.fem.Form,
+        u: dolfinx.fem.Function,
+        contact: ContactOperator,
+        bcs: typing.Sequence[dolfinx.fem.DirichletBC] = (),
+        energy: dolfinx.fem.Form | None = None,
+    ):
+        self.L, self.a, self.u, self.contact = L, a, u, contact
+        self.bcs = list(bcs)
+        self.energy_form = energy
+        self.comm = u.function_space.mesh.comm
+        contact.set_bcs(self.bcs)
+        self.watch = _Stopwatch()
+        self.cells = CellDeterminants(u.function_space)
+        self.matrix = contact.create_matrix(a)
+        self.pattern_rebuilds = 0
+        #: trial states found inadmissible (det F <= 0 or a non-finite residual or energy)
+        self.rejected_states = 0
+        self._scratch = u.x.petsc_vec.duplicate()
+
+    def set_state(self, x: PETSc.Vec) -> None:
+        """Make ``u`` (ghosts included) equal ``x`` and update the contact state there."""
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        if x.handle != self.u.x.petsc_vec.handle:
+            x.copy(self.u.x.petsc_vec)
+            self.u.x.scatter_forward()
+        with self.watch("contact_update"):
+            self.contact.update()
+
+    def min_det_F(self) -> float:
+        """Smallest det F over the cells at the current ``u`` (collective)."""
+        return self.cells.min(self.u)
+
+    def residual(self, x: PETSc.Vec, b: PETSc.Vec) -> bool:
+        """Assemble the residual at ``x`` (state already set) into ``b`` (collective).
+
+        Returns:
+            False if the state is inadmissible: some element has det F <= 0 or the residual is
+            not finite; ``b`` is then filled with NaN, which makes PETSc's backtracking line
+            search shorten the step.
+        """
+        if self.min_det_F() <= 0.0:
+            b.set(np.nan)
+            self.rejected_states += 1
+            return False
+        with self.watch("bulk_assembly"):
+            with b.localForm() as b_local:
+                b_local.set(0.0)
+            dolfinx.fem.petsc.assemble_vector(b, self.L)
+        with self.watch("contact_assembly"):
+            self.contact.add_residual(b)
+        with self.watch("bulk_assembly"):
+            dolfinx.fem.petsc.apply_lifting(b, [self.a], [self.bcs], x0=[x], alpha=-1.0)
+            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            dolfinx.fem.petsc.set_bc(b, self.bcs, x, -1.0)
+        if not np.isfinite(b.norm()):
+            b.set(np.nan)
+            self.rejected_states += 1
+            return False
+        return True
+
+    def jacobian(self, A: PETSc.Mat) -> None:
+        """A = dF/du + d2E/du2 at the current state, Dirichlet rows and columns as DOLFINx sets
+        them (collective)."""
+        with self.watch("bulk_assembly"):
+            A.zeroEntries()
+            dolfinx.fem.petsc.assemble_matrix(A, self.a, self.bcs)
+            A.assemble()
+        with self.watch("contact_assembly"):
+            self.contact.add_jacobian(A)
+
+    def total_energy(self) -> float:
+        """Bulk plus contact energy at the current state; NaN where inadmissible (collective)."""
+        if self.min_det_F() <= 0.0:
+            self.rejected_states += 1
+            return np.nan
+        with self.watch("bulk_assembly"):
+            bulk = self.comm.allreduce(dolfinx.fem.assemble_scalar(self.energy_form))
+        with self.watch("contact_assembly"):
+            value = bulk + self.contact.energy()
+        if not np.isfinite(value):
+            self.rejected_states += 1
+            return np.nan
+        return value
+
+    def rebuild_matrix_if_needed(self, register: typing.Callable[[PETSc.Mat], None]) -> bool:
+        """If a contact coupling left the pattern: build a new matrix, hand it to the solver
+        with ``register(new)``, then release the old one. Returns whether it rebuilt."""
+        with self.watch("contact_update"):
+            rebuild = self.contact.pattern_needs_rebuild()
+        if not rebuild:
+            return False
+        with self.watch("contact_update"):
+            matrix = self.contact.create_matrix(self.a)
+        register(matrix)
+        self.matrix.destroy()
+        self.matrix = matrix
+        self.pattern_rebuilds += 1
+        return True
+
+    def bc_offset(self, x: PETSc.Vec) -> float:
+        """Largest distance of a Dirichlet dof of ``x`` from its prescribed value (collective)."""
+        if not self.bcs:
+            return 0.0
+        x.copy(self._scratch)
+        dolfinx.fem.petsc.set_bc(self._scratch, self.bcs)
+        self._scratch.axpy(-1.0, x)
+        return self._scratch.norm(PETSc.NormType.NORM_INFINITY)
+
+    def destroy(self) -> None:
+        """Release the PETSc objects (collective)."""
+        for obj in (self.matrix, self._scratch):
+            if obj is not None:
+                obj.destroy()
 
 
 def _without_zeros(A: PETSc.Mat) -> PETSc.Mat:
@@ -151,8 +283,38 @@ def _without_zeros(A: PETSc.Mat) -> PETSc.Mat:
     return P
 
 
+def _check_problem_inputs(u, contact, bcs) -> None:
+    """The problem's ``u``, operator and boundary conditions must belong together."""
+    if not isinstance(contact, ContactOperator):
+        raise TypeError(
+            f"contact must be a fenics_matdepth.ContactOperator, got {type(contact).__name__}"
+        )
+    if contact.u is not u:
+        raise ValueError(
+            "the contact operator must be built on the same Function u: create it with "
+            "ContactOperator(u, depth, penalty) for the u you pass here"
+        )
+    for i, bc in enumerate(bcs):
+        if not isinstance(bc, dolfinx.fem.DirichletBC):
+            raise TypeError(
+                f"bcs[{i}] is a {type(bc).__name__}, not a dolfinx.fem.DirichletBC: build it "
+                "with dolfinx.fem.dirichletbc"
+            )
+        if not bc_constrains_space(bc, u.function_space):
+            raise ValueError(
+                f"bcs[{i}] constrains a different function space than u's: build it on "
+                "u.function_space (or one of its subspaces, u.function_space.sub(i))"
+            )
+
+
 class ContactProblem:
     """Nonlinear problem F(u) + dE_contact/du = 0 solved with PETSc SNES.
+
+    The Dirichlet values are imposed through the Newton step (see :class:`ContactAssembler`):
+    ``solve`` starts from ``u`` as it is, and the first step moves the Dirichlet dofs onto
+    their values while the interior follows the linearisation. Trial states of the line search
+    that invert an element (det F <= 0) or give a non-finite residual or energy are rejected:
+    the backtracking line search shortens the step.
 
     Args:
         F: the user's residual form (any UFL physics), linear in the test function.
@@ -163,7 +325,8 @@ class ContactProblem:
         energy: optional UFL energy functional whose derivative is ``F``; when given, the
             backtracking line search works on the total energy (bulk + contact) instead of the
             residual norm, until the energy's rounding noise stalls it near the solution (then
-            on the residual norm; see ``_start_iteration``).
+            on the residual norm; see ``_start_iteration``), and only once the Dirichlet dofs
+            sit on their values (the energy is not a merit function while they move).
         petsc_options_prefix: prefix of this problem's PETSc options.
         petsc_options: options set under the prefix (defaults: newtonls, bt line search, LU with
             MUMPS, rtol 1e-10, atol 1e-12, at most 50 iterations).
@@ -172,8 +335,7 @@ class ContactProblem:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
             ``contact_update`` (gather, refit, pair search), ``contact_assembly`` (pair kernels
             and insertion) and ``linear_solve``.
-        pattern_rebuilds: how many times the matrix was rebuilt because contact couplings left
-            its sparsity pattern (over the problem's life).
+        assembler: the :class:`ContactAssembler` (residual, Jacobian, matrix).
     """
 
     def __init__(
@@ -187,22 +349,19 @@ class ContactProblem:
         petsc_options_prefix: str = "matdepth_",
         petsc_options: dict | None = None,
     ):
-        if contact.u is not u:
-            raise ValueError("the contact operator must be built on the same Function u")
+        _check_problem_inputs(u, contact, bcs)
         self.u = u
         self.contact = contact
         self.bcs = list(bcs)
         self._F = dolfinx.fem.form(F)
         self._J = dolfinx.fem.form(J if J is not None else ufl.derivative(F, u))
         self._energy = dolfinx.fem.form(energy) if energy is not None else None
-        contact.set_bcs(self.bcs)
-        self.prefix = petsc_options_prefix
-        self._watch = _Stopwatch()
+        self.assembler = ContactAssembler(self._F, self._J, u, contact, self.bcs, self._energy)
+        self._watch = self.assembler.watch
         self.timings = dict(self._watch.totals)
-        self.pattern_rebuilds = 0
+        self.prefix = petsc_options_prefix
         comm = u.function_space.mesh.comm
 
-        self._A = contact.create_matrix(self._J)
         self._P: PETSc.Mat | None = None
         # Ghosted, as dolfinx's assembly and lifting read and write ghost entries.
         self._b = u.x.petsc_vec.duplicate()
@@ -227,22 +386,38 @@ class ContactProblem:
         ksp.setPreSolve(self._ksp_started)
         ksp.setPostSolve(self._ksp_finished)
 
+    @property
+    def _A(self) -> PETSc.Mat:
+        """The Jacobian matrix with the full (bulk + contact margin) pattern."""
+        return self.assembler.matrix
+
+    @property
+    def pattern_rebuilds(self) -> int:
+        """How many times the matrix was rebuilt because contact couplings left its sparsity
+        pattern (over the problem's life)."""
+        return self.assembler.pattern_rebuilds
+
+    def min_det_F(self) -> float:
+        """Smallest det F over the cells at the current ``u`` (collective)."""
+        return self.assembler.min_det_F()
+
     # -- callbacks ----------------------------------------------------------------------------
 
     def _set_state(self, x: PETSc.Vec) -> None:
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        x.copy(self.u.x.petsc_vec)
-        self.u.x.scatter_forward()
-        with self._watch("contact_update"):
-            self.contact.update()
+        self.assembler.set_state(x)
 
     def _residual(self, snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
         self._set_state(x)
-        _assemble_residual(b, self._F, self._J, self.bcs, x, self.contact, self._watch)
+        if not self.assembler.residual(x, b):
+            # An inadmissible trial state: b holds NaN, which the backtracking line search
+            # answers by shortening the step (and SNES stops if the start is inadmissible).
+            domain_error = getattr(snes, "setFunctionDomainError", None)
+            if domain_error is not None:
+                domain_error()
 
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
-        _assemble_jacobian(A, self._J, self.bcs, self.contact, self._watch)
+        self.assembler.jacobian(A)
         # The linear solver factorises a copy without the pattern's explicit zeros: the margin
         # couplings of inactive pairs would otherwise be fill-in for the LU (on a 40k-tet
         # press they tripled the nonzeros and made MUMPS eight times slower). SNES hands the
@@ -260,22 +435,23 @@ class ContactProblem:
             self._residual(snes, x, self._b_trial)
             return 0.5 * self._b_trial.norm() ** 2
         self._set_state(x)
-        comm = self.u.function_space.mesh.comm
-        with self._watch("bulk_assembly"):
-            bulk = comm.allreduce(dolfinx.fem.assemble_scalar(self._energy))
-        with self._watch("contact_assembly"):
-            return bulk + self.contact.energy()
+        return self.assembler.total_energy()
 
     def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> None:
-        """Line-search pre-check: the energy judges this step only if the step goes downhill.
+        """Line-search pre-check: the energy judges this step only if the step goes downhill
+        and the Dirichlet dofs already sit on their values.
 
         SNES moves to ``x - lambda y`` with ``J y = F``; the energy's slope along that path is
         ``-F . y``, negative when J is positive definite. Where the contact Hessian makes J
         indefinite (deep, sharp overlaps), ``F . y`` can be negative: the Newton step climbs
         the energy and no step length decreases it. That step is judged by ``|F|^2 / 2``
-        instead, which the Newton step always decreases for small enough steps.
+        instead, which the Newton step always decreases for small enough steps. The same holds
+        while the step still moves Dirichlet dofs onto their values: prescribing a
+        displacement raises the energy, so only the residual norm can judge that step.
         """
-        self._merit_is_energy = self._energy_merit_allowed and y.dot(self._b) > 0.0
+        self._merit_is_energy = (
+            self._energy_merit_allowed and self._bcs_met and y.dot(self._b) > 0.0
+        )
 
     def _start_iteration(self, snes: PETSc.SNES, iteration: int) -> None:
         """Before each Newton step's Jacobian: switch the line search's merit function if the
@@ -300,16 +476,16 @@ class ContactProblem:
         ):
             self._energy_merit_allowed = False
         self._last_norm = norm
-        self._set_state(snes.getSolution())
-        with self._watch("contact_update"):
-            rebuild = self.contact.pattern_needs_rebuild()
-        if rebuild:
-            with self._watch("contact_update"):
-                A = self.contact.create_matrix(self._J)
+        x = snes.getSolution()
+        if self._energy is not None:
+            scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
+            self._bcs_met = self.assembler.bc_offset(x) <= 1e-12 * scale
+        self._set_state(x)
+
+        def register(A: PETSc.Mat) -> None:
             snes.setJacobian(self._jacobian, A, self._P if self._P is not None else A)
-            self._A.destroy()
-            self._A = A
-            self.pattern_rebuilds += 1
+
+        self.assembler.rebuild_matrix_if_needed(register)
 
     def _ksp_started(self, ksp, b, x) -> None:
         self._ksp_start = time.perf_counter()
@@ -322,30 +498,38 @@ class ContactProblem:
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Solve from the current ``u``; ``u`` holds the last iterate afterwards (collective).
 
+        The Dirichlet values are reached by the first Newton step, not written into ``u``
+        beforehand.
+
         Args:
             raise_on_failure: raise ``RuntimeError`` (with the residual history) when SNES does
                 not converge; otherwise return the result with ``converged=False``.
         """
         self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
         self._merit_is_energy, self._last_norm = True, np.inf
-        self._energy_merit_allowed = True
+        self._energy_merit_allowed, self._bcs_met = True, False
+        self.assembler.rejected_states = 0
         self.u.x.petsc_vec.copy(self._x)
-        dolfinx.fem.petsc.set_bc(self._x, self.bcs)
         self.snes.setConvergenceHistory(reset=True)
         self.snes.solve(None, self._x)
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
         history = np.asarray(self.snes.getConvergenceHistory()[0], dtype=float)
         reason = int(self.snes.getConvergedReason())
-        result = SolveResult(reason > 0, reason, int(self.snes.getIterationNumber()), history)
+        result = SolveResult(
+            reason > 0, reason, int(self.snes.getIterationNumber()), history,
+            self.assembler.rejected_states, self.min_det_F(),
+        )  # fmt: skip
         if raise_on_failure and not result.converged:
             raise RuntimeError(result.failure_message())
         return result
 
     def __del__(self):
-        for obj in ("snes", "_A", "_P", "_b", "_x", "_b_trial"):
+        for obj in ("snes", "_P", "_b", "_x", "_b_trial"):
             if getattr(self, obj, None) is not None:
                 getattr(self, obj).destroy()
+        if getattr(self, "assembler", None) is not None:
+            self.assembler.destroy()
 
 
 class NonlinearContactProblem(NewtonSolverProblemBase):
@@ -360,6 +544,11 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         solver = dolfinx.nls.petsc.NewtonSolver(comm, problem)
         problem.attach(solver)          # or: solver = problem.newton_solver()
         n, converged = solver.solve(u)
+
+    The residual and Jacobian come from the same :class:`ContactAssembler` as
+    :class:`ContactProblem`'s. :meth:`attach` also installs the solution update: the Newton
+    step (times the solver's relaxation parameter) is halved until no element is inverted
+    (det F > 0 everywhere), at most ``MAX_STEP_HALVINGS`` times.
 
     Args:
         F: the user's residual form, linear in the test function.
@@ -380,32 +569,40 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         form_compiler_options: dict | None = None,
         jit_options: dict | None = None,
     ):
-        if contact.u is not u:
-            raise ValueError("the contact operator must be built on the same Function u")
+        _check_problem_inputs(u, contact, bcs)
         super().__init__(
             F, u, bcs=list(bcs), J=J, form_compiler_options=form_compiler_options,
             jit_options=jit_options,
         )  # fmt: skip
         self.u = u
         self.contact = contact
-        contact.set_bcs(self.bcs)
-        self._matrix = contact.create_matrix(self.a)
+        self.assembler = ContactAssembler(self.L, self.a, u, contact, self.bcs)
+        self._watch = self.assembler.watch
         self._solver = None
-        self._watch = _Stopwatch()
-        self.pattern_rebuilds = 0
+        self._trial = u.x.petsc_vec.duplicate()
         #: residual norm at each residual evaluation of the current solve
         self.residual_norms: list[float] = []
 
     @property
     def matrix(self) -> PETSc.Mat:
         """The Jacobian matrix (bulk + contact pattern) the solver must use."""
-        return self._matrix
+        return self.assembler.matrix
+
+    @property
+    def pattern_rebuilds(self) -> int:
+        """How many times the matrix was rebuilt because contact couplings left its pattern."""
+        return self.assembler.pattern_rebuilds
+
+    def min_det_F(self) -> float:
+        """Smallest det F over the cells at the current ``u`` (collective)."""
+        return self.assembler.min_det_F()
 
     def attach(self, solver) -> None:
         """Make ``solver`` (a ``dolfinx.nls.petsc.NewtonSolver`` of this problem) assemble the
-        Jacobian into :attr:`matrix`; also lets the problem swap in a rebuilt matrix when
-        contact couplings leave the pattern."""
-        solver.setJ(self.J, self._matrix)
+        Jacobian into :attr:`matrix` and use the inversion-avoiding update; also lets the
+        problem swap in a rebuilt matrix when contact couplings leave the pattern."""
+        solver.setJ(self.J, self.matrix)
+        solver.set_update(self._update)
         self._solver = solver
 
     def newton_solver(self, **settings) -> typing.Any:
@@ -440,39 +637,43 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
 
     def form(self, x: PETSc.Vec) -> None:
         """Before F and J at a new iterate: ghost values, contact update, pattern check."""
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        if x.handle != self.u.x.petsc_vec.handle:
-            x.copy(self.u.x.petsc_vec)
-            self.u.x.scatter_forward()
-        with self._watch("contact_update"):
-            self.contact.update()
-            rebuild = self.contact.pattern_needs_rebuild()
-        if rebuild:
-            if self._solver is None:
+        self.assembler.set_state(x)
+        if self._solver is None:
+            if self.contact.pattern_needs_rebuild():
                 raise RuntimeError(
                     "contact couplings left the matrix pattern and no solver is attached: call "
                     "problem.attach(solver) after creating the NewtonSolver"
                 )
-            with self._watch("contact_update"):
-                matrix = self.contact.create_matrix(self.a)
-            self._solver.setJ(self.J, matrix)
-            self._matrix.destroy()
-            self._matrix = matrix
-            self.pattern_rebuilds += 1
+            return
+        self.assembler.rebuild_matrix_if_needed(lambda A: self._solver.setJ(self.J, A))
 
     def F(self, x: PETSc.Vec, b: PETSc.Vec) -> None:
-        """Assemble the residual F(u) + dE/du into ``b``."""
-        _assemble_residual(b, self.L, self.a, self.bcs, x, self.contact, self._watch)
+        """Assemble the residual F(u) + dE/du into ``b`` (NaN where the state is inadmissible)."""
+        self.assembler.residual(x, b)
         self.residual_norms.append(b.norm())
 
     def J(self, x: PETSc.Vec, A: PETSc.Mat) -> None:
         """Assemble the Jacobian into ``A`` (which must be :attr:`matrix`)."""
-        if A.handle != self._matrix.handle:
+        if A.handle != self.matrix.handle:
             raise RuntimeError(
                 "the NewtonSolver assembles into its own matrix, which lacks the contact "
                 "couplings: call problem.attach(solver) (or use problem.newton_solver())"
             )
-        _assemble_jacobian(A, self.a, self.bcs, self.contact, self._watch)
+        self.assembler.jacobian(A)
+
+    def _update(self, solver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
+        """x -= relaxation * dx, the step halved while it would invert an element."""
+        step = solver.relaxation_parameter
+        for _ in range(MAX_STEP_HALVINGS):
+            x.copy(self._trial)
+            self._trial.axpy(-step, dx)
+            self._trial.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            with self._trial.localForm() as local:
+                if self.assembler.cells.min(local.array_r) > 0.0:
+                    break
+            self.assembler.rejected_states += 1
+            step /= 2.0
+        x.axpy(-step, dx)
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Solve with the attached NewtonSolver (one from :meth:`newton_solver` if none).
@@ -484,21 +685,30 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         if self._solver is None:
             self.newton_solver()
         self.residual_norms = []
-        iterations, converged = self._solver.solve(self.u)
+        self.assembler.rejected_states = 0
+        try:
+            iterations, converged = self._solver.solve(self.u)
+        except RuntimeError:
+            if raise_on_failure:
+                raise
+            iterations, converged = len(self.residual_norms), False
         self.u.x.scatter_forward()
         with self._watch("contact_update"):
             self.contact.update()
         result = SolveResult(
             bool(converged), 1 if converged else -1, int(iterations),
-            np.asarray(self.residual_norms, dtype=float),
+            np.asarray(self.residual_norms, dtype=float), self.assembler.rejected_states,
+            self.min_det_F(),
         )  # fmt: skip
         if raise_on_failure and not converged:
             raise RuntimeError(result.failure_message())
         return result
 
     def __del__(self):
-        if hasattr(self, "_matrix"):
-            self._matrix.destroy()
+        if getattr(self, "assembler", None) is not None:
+            self.assembler.destroy()
+        if getattr(self, "_trial", None) is not None:
+            self._trial.destroy()
 
 
 # -- load stepping -----------------------------------------------------------------------------
@@ -513,7 +723,9 @@ class LoadStep:
         iterations: Newton iterations of the converged solve.
         residual_norms: its residual history.
         cuts: failed attempts (step halvings) before this step converged.
-        diagnostics: ``contact.diagnostics()`` after the step.
+        diagnostics: ``contact.diagnostics()`` after the step, plus ``min_det_F`` (smallest
+            det F over the cells) and ``rejected_states`` (inadmissible trial states the solve
+            rejected).
         seconds: wall time of the step, failed attempts included.
     """
 
@@ -543,6 +755,17 @@ def _write(writer, u: dolfinx.fem.Function, load: float) -> None:
         writer(load)
 
 
+def _collective_call(comm: MPI.Comm, what: str, fix: str, function, *args) -> None:
+    """Call ``function(*args)`` on every rank; if it raises on any rank, raise RuntimeError on
+    every rank, naming ``what`` failed and the ``fix``."""
+    try:
+        function(*args)
+        message = None
+    except Exception as err:  # any error of user code is reported
+        message = f"{what} raised {type(err).__name__}: {err}. {fix}"
+    collective_error(comm, message, RuntimeError)
+
+
 def solve_load_steps(
     problem: _Solvable,
     set_load: typing.Callable[[float], None],
@@ -553,14 +776,21 @@ def solve_load_steps(
     min_step: float | None = None,
     writer=None,
     progress: bool = True,
+    predictor: typing.Literal["extrapolate", "none"] = "none",
+    checkpoint: str | os.PathLike | None = None,
+    resume: str | os.PathLike | None = None,
 ) -> list[LoadStep]:
     """Solve ``problem`` for load factors from ``start`` to ``end`` with automatic step cutting.
 
     Each step calls ``set_load(t)`` (update a ``Constant``, a Dirichlet ``Function``, ...) and
-    solves from the previous converged state. A step that fails (no convergence, NaN, an
-    inverted element raising) is retried from that state with half the increment; after a
+    solves from the previous converged state, or from a prediction of the new one (below). A
+    step that fails (no convergence, NaN, an inverted element raising, the line search unable
+    to find an admissible state) is retried from that state with half the increment; after a
     success the increment grows back (doubles) up to the nominal ``(end - start) /
     num_steps``. The step never overshoots ``end``.
+
+    The Dirichlet values are not written into the starting state: the problems impose them
+    through the first Newton step (see :class:`ContactAssembler`).
 
     Args:
         problem: a :class:`ContactProblem` or :class:`NonlinearContactProblem` (anything with
@@ -573,23 +803,54 @@ def solve_load_steps(
             t)``; write the mesh first), a ``dolfinx.io.VTXWriter`` on ``u`` (``write(t)``), or
             any callable ``writer(t)``.
         progress: print one line per converged step on rank 0.
+        predictor: ``"extrapolate"``: start each step from the last converged displacement plus
+            the last converged increment scaled to the new load increment (linear
+            extrapolation, as FEBio and Abaqus do), unless that would invert an element;
+            ``"none"`` (default): start from the last converged displacement.
+        checkpoint: save each converged step to this file (:class:`fenics_matdepth.checkpoint.
+            Checkpoint` format; ``.npz``), replacing the previous one.
+        resume: continue from the last step saved in this checkpoint file (written by a run
+            with the same ``start``, ``end``, ``num_steps`` and mesh); the returned list holds
+            the steps of this call only.
 
     Returns:
-        The converged steps.
+        The converged steps. Each ``LoadStep.diagnostics`` is ``contact.diagnostics()`` plus
+        ``min_det_F`` (the smallest det F over the cells) and ``rejected_states``.
 
     Raises:
         RuntimeError: if the increment falls below ``min_step``; ``u`` then holds the last
             converged state, whose load factor the message gives, and everything already
-            written stays written.
+            written stays written. Also (on every rank) if ``set_load`` or ``writer`` raises,
+            with ``u`` holding the last converged state.
     """
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    if predictor not in ("extrapolate", "none"):
+        raise ValueError(f'predictor must be "extrapolate" or "none", got {predictor!r}')
+    if not (np.isfinite(start) and np.isfinite(end)) or start == end:
+        raise ValueError(f"start and end must be distinct finite numbers, got {start}, {end}")
     u = problem.u
     comm = u.function_space.mesh.comm
+    cells = CellDeterminants(u.function_space)
     nominal = (end - start) / num_steps
     min_step = abs(nominal) / 2**10 if min_step is None else float(min_step)
     steps: list[LoadStep] = []
     t, dt = float(start), nominal
+    previous, dt_previous, done = None, 0.0, 0
+    run = {"start": float(start), "end": float(end), "num_steps": int(num_steps)}
+    if resume is not None:
+        arrays, meta = Checkpoint(resume, u.function_space).load()
+        if {k: meta.get(k) for k in run} != run:
+            raise ValueError(
+                f"the checkpoint {resume} belongs to a run with start, end, num_steps = "
+                f"{meta.get('start')}, {meta.get('end')}, {meta.get('num_steps')}; resume with "
+                "the same values"
+            )
+        u.x.array[:] = arrays["u"]
+        previous = arrays.get("u_previous")
+        t, dt, dt_previous, done = meta["load"], meta["dt"], meta["dt_previous"], meta["steps"]
+        _collective_call(comm, f"set_load({t:.6g})", "Fix the set_load callback.", set_load, t)
+    saver = Checkpoint(checkpoint, u.function_space) if checkpoint is not None else None
     saved = u.x.array.copy()
     while (end - t) * np.sign(nominal) > 1e-12 * abs(nominal):
         t_next = t + dt
@@ -597,7 +858,16 @@ def solve_load_steps(
             t_next, dt = end, end - t
         cuts, tic = 0, time.perf_counter()
         while True:
-            set_load(t_next)
+            u.x.array[:] = saved
+            _collective_call(
+                comm, f"set_load({t_next:.6g})",
+                f"Fix the set_load callback; u holds the converged state at load {t:.6g}.",
+                set_load, t_next,
+            )  # fmt: skip
+            if predictor == "extrapolate" and previous is not None and dt_previous != 0.0:
+                guess = saved + (dt / dt_previous) * (saved - previous)
+                if cells.min(guess) > 0.0:
+                    u.x.array[:] = guess
             try:
                 result = problem.solve(raise_on_failure=False)
                 failure = None if result.converged else result.failure_message()
@@ -609,7 +879,7 @@ def solve_load_steps(
             cuts += 1
             u.x.array[:] = saved
             if abs(dt) / 2 < min_step:
-                set_load(t)
+                _collective_call(comm, f"set_load({t:.6g})", "", set_load, t)
                 raise RuntimeError(
                     f"load stepping stopped at load factor {t:.6g}: the step to {t_next:.6g} "
                     f"failed with an increment of {abs(dt):.3g} (min_step {min_step:.3g}). "
@@ -617,22 +887,35 @@ def solve_load_steps(
                 )
             dt /= 2
             t_next = t + dt
+        previous, dt_previous = saved, dt
         t = t_next
         saved = u.x.array.copy()
         diag = problem.contact.diagnostics()
+        diag["min_det_F"] = cells.min(u)
+        diag["rejected_states"] = result.rejected_states
         step = LoadStep(
             t, result.iterations, result.residual_norms, cuts, diag, time.perf_counter() - tic
         )
         steps.append(step)
-        _write(writer, u, t)
+        _collective_call(
+            comm, f"writer at load {t:.6g}",
+            f"Check the writer (path writable, file open); u holds the converged state at load "
+            f"{t:.6g}.", _write, writer, u, t,
+        )  # fmt: skip
         if progress and comm.rank == 0:
             print(
-                f"step {len(steps):3d}  load {t:.4g}  newton {result.iterations:2d} it  "
+                f"step {done + len(steps):3d}  load {t:.4g}  newton {result.iterations:2d} it  "
                 f"|r| {result.residual_norms[-1]:.2e}  cuts {cuts}  "
                 f"active pairs {diag['active_pairs']}  "
-                f"max penetration {diag['max_penetration']:.3e}  {step.seconds:.2f} s",
+                f"max penetration {diag['max_penetration']:.3e}  "
+                f"min det F {diag['min_det_F']:.3f}  {step.seconds:.2f} s",
                 flush=True,
             )
         if abs(dt) < abs(nominal):
             dt = min(abs(dt) * 2, abs(nominal)) * np.sign(nominal)
+        if saver is not None:
+            saver.save(
+                {"u": saved, "u_previous": previous}, load=t, dt=float(dt),
+                dt_previous=float(dt_previous), steps=done + len(steps), **run,
+            )  # fmt: skip
     return steps

@@ -54,7 +54,10 @@ def _setup(comm, integration):
     x = V.tabulate_dof_coordinates()
     # A smooth, partition-independent perturbation, so that no pair sits on a degenerate case.
     u.x.array[:] = (0.02 * np.sin([3.1, 2.3, 1.7] * x + np.array([0.3, 0.1, 0.7]))).ravel()
-    op = ContactOperator(u, fm.material_depth(mesh), penalty=50.0, integration=integration)
+    op = ContactOperator(
+        u, fm.material_depth(mesh), penalty=50.0, integration=integration,
+        allow_reference_overlap=True,  # the boxes overlap in the mesh on purpose
+    )  # fmt: skip
     return mesh, V, u, op
 
 

@@ -129,7 +129,9 @@ def test_newton_solver_needs_the_contact_matrix():
     comm = MPI.COMM_WORLD
     mesh, V, u, residual, _ = _stacked_blocks(comm, sink=0.01)
     bcs, _ = _press_bcs(mesh, V, 0.89, 0.0)
-    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    contact = fm.ContactOperator(
+        u, fm.material_depth(mesh), penalty=200.0, allow_reference_overlap=True
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         problem = NonlinearContactProblem(residual, u, contact, bcs=bcs)
@@ -252,7 +254,9 @@ def test_contact_with_body_force_and_follower_pressure():
         Vc = V.sub(c)
         dofs = dolfinx.fem.locate_dofs_topological(Vc, fdim, top)
         bcs.append(dolfinx.fem.dirichletbc(dolfinx.default_scalar_type(0.0), dofs, Vc))
-    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    contact = fm.ContactOperator(
+        u, fm.material_depth(mesh), penalty=200.0, allow_reference_overlap=True
+    )
     problem = ContactProblem(F, u, contact, bcs=bcs, petsc_options_prefix="combined_")
     result = problem.solve()
     assert result.converged

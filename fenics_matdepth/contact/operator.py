@@ -29,6 +29,7 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
+from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import (
     _area_pairs_active,
@@ -37,7 +38,6 @@ from fenics_matdepth.contact.kernels import (
 )
 from fenics_matdepth.depth import (
     DepthDeficiency,
-    _check_mesh,
     _p1_dof_coordinates,
     boundary_triangles,
     count_depth_deficient,
@@ -88,6 +88,8 @@ class ContactOperator:
             its centroid, which gets its exact distance to the boundary (default). The mesh
             and the function spaces are untouched; ``False`` keeps the plain P1 depth, through
             which a surface entering such a tetrahedron passes without force.
+        allow_reference_overlap: accept bodies that overlap in the reference configuration
+            (by default a ``ValueError``: their material depth is wrong).
 
     Typical use in a Newton loop: ``update()`` at each iterate, then ``add_residual(b)`` and
     ``add_jacobian(A, bcs)`` after dolfinx has assembled the bulk terms into ``b`` and ``A``;
@@ -102,10 +104,11 @@ class ContactOperator:
         integration: typing.Literal["area", "collocation"] = "area",
         margin: float | None = None,
         split_deficient: bool = True,
+        allow_reference_overlap: bool = False,
     ):
         V = u.function_space
         mesh = V.mesh
-        _check_mesh(mesh)
+        check_contact_mesh(mesh)
         if V.dofmap.index_map_bs != 3 or V.ufl_element().degree != 1:
             raise ValueError(
                 "ContactOperator needs u on a P1 vector space of dimension 3, e.g. "
@@ -189,6 +192,7 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None
         self._cache: dict[str, typing.Any] = {}
         self.update()
+        check_contact_state(self, allow_reference_overlap)
 
     def _setup_deficient(
         self,

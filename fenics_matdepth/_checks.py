@@ -1,0 +1,384 @@
+"""Input validation and element checks, in one place.
+
+Every check here is collective where it looks at distributed data: each rank tests its own
+part and the ranks agree (``allreduce``) before anything is raised, so an error is raised on
+every rank and no rank is left waiting in a collective call.
+
+* :func:`check_mesh`: the mesh is a dolfinx mesh of affine tetrahedra in 3D.
+* :func:`check_mesh_quality`: finite coordinates, no degenerate (zero-volume) tetrahedron, no
+  tetrahedron folded over a neighbour (an inverted element of a tangled mesh).
+* :class:`CellDeterminants`: the smallest ``det F`` over the cells of a P1 displacement, a cheap
+  per-cell evaluation used to reject trial states that invert elements.
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+
+from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
+
+__all__ = [
+    "CellDeterminants",
+    "check_contact_mesh",
+    "check_contact_state",
+    "check_function_space",
+    "check_manifold_boundary",
+    "check_mesh",
+    "check_mesh_quality",
+    "collective_error",
+]
+
+#: Material depth (relative to the mean boundary edge) above which a boundary triangle is
+#: counted as inside another tetrahedron in the reference configuration; below it, coincident
+#: surfaces touch (round-off of the barycentric coordinates gives depths of about 1e-16).
+OVERLAP_DEPTH_RTOL = 1e-6
+
+#: A tetrahedron whose volume is below this fraction of (its longest edge)^3 counts as
+#: degenerate (a regular tetrahedron has about 0.118).
+DEGENERATE_VOLUME_RATIO = 1e-10
+
+
+def collective_error(comm: MPI.Comm, message: str | None, error: type = ValueError) -> None:
+    """Raise ``error`` on every rank if any rank has a ``message`` (the first one found).
+
+    Args:
+        comm: communicator of the ranks that must agree.
+        message: this rank's error message, or None if this rank found nothing wrong.
+        error: exception class raised.
+    """
+    messages = comm.allgather(message)
+    first = next((m for m in messages if m is not None), None)
+    if first is not None:
+        raise error(first)
+
+
+def check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
+    """The mesh must be a dolfinx mesh of affine (straight-sided) tetrahedra in 3D.
+
+    Raises:
+        TypeError: if ``mesh`` is not a ``dolfinx.mesh.Mesh``.
+        ValueError: for other cells, another geometric dimension or curved geometry.
+    """
+    if not isinstance(mesh, dolfinx.mesh.Mesh):
+        raise TypeError(
+            f"expected a dolfinx.mesh.Mesh, got {type(mesh).__name__}: pass the mesh itself "
+            "(e.g. u.function_space.mesh)"
+        )
+    cell_type = mesh.topology.cell_type
+    if cell_type != dolfinx.mesh.CellType.tetrahedron:
+        raise ValueError(
+            f"material-depth contact needs a tetrahedral mesh, got {cell_type.name} cells: mesh "
+            "the bodies with tetrahedra (e.g. create_box(..., CellType.tetrahedron) or gmsh 3D)"
+        )
+    if mesh.geometry.dim != 3:
+        raise ValueError(
+            f"material-depth contact needs a 3D geometry, got gdim={mesh.geometry.dim}: create "
+            "the mesh with three coordinates per vertex"
+        )
+    degree = geometry_cmap(mesh).degree
+    if degree != 1:
+        raise ValueError(
+            f"material-depth contact needs affine (degree-1) geometry, got a degree-{degree} "
+            "coordinate element: generate the mesh with straight-sided tetrahedra "
+            "(gmsh: model.mesh.setOrder(1))"
+        )
+
+
+def _cell_vertex_coordinates(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """(num local cells, 4, 3) vertex coordinates of the owned and ghost cells."""
+    nodes = np.asarray(geometry_dofmap(mesh)).reshape(-1, 4)
+    return np.asarray(mesh.geometry.x[nodes], dtype=np.float64)
+
+
+def _signed_volumes6(x: np.ndarray) -> np.ndarray:
+    """Six times the signed volume of each tetrahedron of ``x`` (n, 4, 3)."""
+    e = x[:, 1:] - x[:, :1]
+    return np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))
+
+
+def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
+    """Finite coordinates, no zero-volume tetrahedron, no tetrahedron folded over a neighbour.
+
+    A tetrahedron is *folded over* (inverted) when it and a neighbour across a shared face
+    lie on the same side of that face: the two overlap, as happens when a vertex of a valid
+    mesh is moved through the opposite face. This test does not depend on the orientation
+    (vertex order) of the cells. Faces shared across the partition boundary are tested where
+    both cells are on one rank (always in serial).
+
+    Raises:
+        ValueError: naming the first bad cell (its reference coordinates) and the fix, on
+            every rank.
+    """
+    check_mesh(mesh)
+    comm = mesh.comm
+    x_all = np.asarray(mesh.geometry.x)
+    message = None
+    if not np.all(np.isfinite(x_all)):
+        bad = x_all[~np.all(np.isfinite(x_all), axis=1)][0]
+        message = (
+            f"the mesh has non-finite vertex coordinates (e.g. {bad.tolist()}): fix the mesh "
+            "file or the code that builds the coordinates"
+        )
+    collective_error(comm, message)
+
+    x = _cell_vertex_coordinates(mesh)
+    num_owned = mesh.topology.index_map(3).size_local
+    vol6 = _signed_volumes6(x)
+    if x.shape[0]:
+        edges = x[:, [1, 2, 3, 2, 3, 3]] - x[:, [0, 0, 0, 1, 1, 2]]
+        longest = np.linalg.norm(edges, axis=2).max(axis=1)
+        flat = np.abs(vol6[:num_owned]) <= 6.0 * DEGENERATE_VOLUME_RATIO * longest[:num_owned] ** 3
+        if np.any(flat):
+            c = int(np.flatnonzero(flat)[0])
+            message = (
+                f"{int(flat.sum())} tetrahedra have (near) zero volume, e.g. the one with vertices "
+                f"{np.round(x[c], 6).tolist()}: remove the degenerate (flat) tetrahedra, e.g. "
+                "re-mesh with gmsh (Mesh.Optimize) or merge duplicate vertices"
+            )
+    collective_error(comm, message)
+
+    # Folded-over cells: the opposite vertices of two cells sharing a face must lie on
+    # opposite sides of the face's plane.
+    mesh.topology.create_connectivity(2, 3)
+    mesh.topology.create_connectivity(3, 2)
+    f2c = mesh.topology.connectivity(2, 3)
+    offsets = np.asarray(f2c.offsets)
+    two = np.flatnonzero(np.diff(offsets) == 2)
+    if two.size:
+        cells = np.asarray(f2c.array)[offsets[two][:, None] + np.arange(2)]
+        c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
+        # the reference tetrahedron's facet i is opposite its vertex i
+        opp = np.stack(
+            [np.argmax(c2f[cells[:, k]] == two[:, None], axis=1) for k in (0, 1)], axis=1
+        )
+        xa = x[cells[:, 0]]
+        face = np.take_along_axis(
+            xa, np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[opp[:, 0]][:, :, None], 1
+        )
+        normal = np.cross(face[:, 1] - face[:, 0], face[:, 2] - face[:, 0])
+        pa = xa[np.arange(two.size), opp[:, 0]]
+        pb = x[cells[:, 1], opp[:, 1]]
+        sa = np.einsum("ij,ij->i", pa - face[:, 0], normal)
+        sb = np.einsum("ij,ij->i", pb - face[:, 0], normal)
+        folded = sa * sb > 0.0
+        if np.any(folded):
+            c = int(cells[np.flatnonzero(folded)[0], 0])
+            message = (
+                f"{int(folded.sum())} interior faces have both their tetrahedra on the same "
+                f"side (an inverted, folded-over element), e.g. at the tetrahedron with vertices "
+                f"{np.round(x[c], 6).tolist()}: the mesh is tangled; re-mesh, or fix the vertex "
+                "that was moved through the opposite face"
+            )
+    collective_error(comm, message)
+
+
+def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
+    """Global vertex indices (topology numbering) of all exterior triangles, on every rank."""
+    from fenics_matdepth.contact.operator import _allgather_rows
+    from fenics_matdepth.depth import owned_exterior_facets
+
+    facets = owned_exterior_facets(mesh)
+    mesh.topology.create_connectivity(2, 0)
+    f2v = np.asarray(mesh.topology.connectivity(2, 0).array).reshape(-1, 3)
+    local = f2v[facets]
+    imap = mesh.topology.index_map(0)
+    glob = imap.local_to_global(local.ravel().astype(np.int32)).reshape(-1, 3)
+    return _allgather_rows(mesh.comm, glob.astype(np.int64))
+
+
+def check_manifold_boundary(mesh: dolfinx.mesh.Mesh) -> None:
+    """Every boundary edge must bound exactly two boundary triangles, and the boundary
+    triangles around each boundary vertex must form one fan (collective).
+
+    Two tetrahedra (or bodies) that share only an edge or only a vertex make the boundary
+    non-manifold there: the material depth and the triangle-tetrahedron pairs cannot tell the
+    two sides apart.
+
+    Raises:
+        ValueError: on every rank, with the number of non-manifold edges and vertices and one
+            location.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tri = _gathered_boundary_triangles(mesh)
+    if tri.shape[0] == 0:
+        return
+    m = tri.shape[0]
+    edges = np.sort(tri[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, inverse, counts = np.unique(
+        edges[:, 0] * (tri.max() + 1) + edges[:, 1], return_inverse=True, return_counts=True
+    )
+    bad_edges = counts != 2
+    # Fans: incidences (vertex, triangle) linked when the two triangles share an edge through
+    # the vertex; a manifold vertex has one connected fan.
+    incidence = np.arange(3 * m).reshape(m, 3)  # incidence of corner c of triangle t
+    owner_tri = np.repeat(np.arange(m), 3)
+    corner = np.array([[0, 1], [1, 2], [2, 0]])
+    a_idx, b_idx = [], []
+    order = np.argsort(inverse, kind="stable")
+    starts = np.cumsum(np.r_[0, counts])[:-1]
+    pairs = starts[counts == 2]
+    e1, e2 = order[pairs], order[pairs + 1]  # the two edge slots of each two-sided edge
+    for k in (0, 1):
+        v1 = tri[owner_tri[e1], corner[e1 % 3, k]]
+        # the same vertex's corner in the other triangle
+        t2 = owner_tri[e2]
+        c2 = np.argmax(tri[t2] == v1[:, None], axis=1)
+        a_idx.append(incidence[owner_tri[e1], corner[e1 % 3, k]])
+        b_idx.append(incidence[t2, c2])
+    a_idx, b_idx = np.concatenate(a_idx), np.concatenate(b_idx)
+    graph = coo_matrix((np.ones(a_idx.size), (a_idx, b_idx)), shape=(3 * m, 3 * m))
+    _, label = connected_components(graph, directed=False)
+    vertex = tri.ravel()
+    fans = np.unique(np.stack((vertex, label), axis=1), axis=0)
+    vertices, fan_counts = np.unique(fans[:, 0], return_counts=True)
+    bad_vertices = vertices[fan_counts > 1]
+    if np.any(bad_edges) or bad_vertices.size:
+        raise ValueError(
+            f"the boundary is non-manifold: {int(bad_edges.sum())} edges bound other than two "
+            f"boundary triangles and {bad_vertices.size} vertices join separate boundary fans "
+            "(tetrahedra or bodies that touch only along an edge or at a vertex). Material-depth "
+            "contact needs every body bounded by a closed surface: duplicate the shared "
+            "vertices so that the bodies are separate pieces of the mesh, or glue them along "
+            "whole faces"
+        )
+
+
+def check_contact_mesh(mesh: dolfinx.mesh.Mesh) -> None:
+    """All mesh checks material-depth contact needs (collective): affine tetrahedra in 3D,
+    finite coordinates, no degenerate or folded-over tetrahedron, a manifold boundary."""
+    check_mesh(mesh)
+    check_mesh_quality(mesh)
+    check_manifold_boundary(mesh)
+
+
+def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
+    """Checks of a new contact operator (collective).
+
+    * Every body (connected component of the mesh) has a vertex with positive material depth;
+      otherwise nothing can push out of it (a single tetrahedron, a layer one element thick).
+    * No boundary triangle lies inside a tetrahedron of the mesh in the reference
+      configuration (u = 0): the operator's own pair search and pair kernels at u = 0, between
+      different bodies or within one. Bodies that overlap in the reference configuration get
+      a wrong material depth (each one's surface counts as boundary inside the other).
+      Surfaces that coincide without being glued touch with zero depth and pass.
+
+    Args:
+        contact: the :class:`~fenics_matdepth.ContactOperator`.
+        allow_reference_overlap: skip the overlap check (for tests that start intersected on
+            purpose).
+
+    Raises:
+        ValueError: on every rank, naming the problem and the fix.
+    """
+    from fenics_matdepth.contact.kernels import _area_pairs_active, _area_pairs_max_depth
+    from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+
+    deepest = np.zeros(contact.num_bodies)
+    np.maximum.at(deepest, contact.body_of_vertex, contact._depth)
+    # Depth-deficient tetrahedra split around their centroid carry the centroid's depth.
+    tets, depth = contact._kernel_tets, contact._kernel_depth
+    if tets.shape[1] == 5:
+        split = tets[:, 4] >= 0
+        np.maximum.at(deepest, contact.body_of_vertex[tets[split, 0]], depth[tets[split, 4]])
+    shallow = np.flatnonzero(deepest <= 0.0)
+    if shallow.size:
+        raise ValueError(
+            f"{shallow.size} of the {contact.num_bodies} bodies have no vertex inside them "
+            "(material depth zero everywhere, e.g. a single tetrahedron or a layer one element "
+            "thick, with split_deficient=False), so contact cannot push anything out of them: "
+            "keep split_deficient=True (the default), or refine the mesh so that each body has "
+            "interior vertices (at least two elements through its thickness)"
+        )
+    if allow_reference_overlap:
+        return
+    X, tri = contact._X, contact._tri
+    tree = AABBTree(X, contact._tets)
+    lo, hi = element_boxes(X, tri)
+    pa, pk = tree.query_boxes(lo, hi)
+    pa, pk = exclude_shared_vertex_pairs(tri, contact._tets, pa, pk)
+    active, _, _, _ = _area_pairs_active(X, depth, tri, tets, pa, pk, contact.penalty, False, False)
+    pa, pk = pa[active], pk[active]
+    g = _area_pairs_max_depth(X, depth, tri, tets, pa, pk)
+    tolerance = OVERLAP_DEPTH_RTOL * 10.0 * contact.margin
+    inside = g > tolerance
+    count = contact.comm.allreduce(int(np.count_nonzero(inside)))
+    if count:
+        bodies = contact.body_of_vertex
+        between = inside & (bodies[tri[pa, 0]] != bodies[tets[pk, 0]])
+        n_between = contact.comm.allreduce(int(np.count_nonzero(between)))
+        deepest_g = contact.comm.allreduce(float(g.max(initial=0.0)), op=MPI.MAX)
+        raise ValueError(
+            f"the bodies overlap in the reference configuration: {count} boundary triangle / "
+            f"tetrahedron pairs intersect at u = 0 ({n_between} between different bodies, "
+            f"{count - n_between} within one body), up to a material depth of {deepest_g:.3g}. "
+            "The material depth is then wrong. Move the bodies apart in the mesh (start them "
+            "touching or separated and press them together with the load), or pass "
+            "allow_reference_overlap=True if the overlap is intended"
+        )
+
+
+def check_function_space(u: dolfinx.fem.Function, what: str = "u") -> None:
+    """``u`` must be a Function on a P1 (Lagrange degree 1) vector space of dimension 3.
+
+    Raises:
+        TypeError: if ``u`` is not a dolfinx Function.
+        ValueError: for another element, naming it and the space to use.
+    """
+    if not isinstance(u, dolfinx.fem.Function):
+        raise TypeError(
+            f"{what} must be a dolfinx.fem.Function, got {type(u).__name__}: create it with "
+            'dolfinx.fem.Function(functionspace(mesh, ("Lagrange", 1, (3,))))'
+        )
+    V = u.function_space
+    element = V.ufl_element()
+    if V.dofmap.index_map_bs != 3 or element.degree != 1 or len(element.reference_value_shape) != 1:
+        raise ValueError(
+            f"{what} must live on a P1 vector space of dimension 3, got a space of degree "
+            f"{element.degree} with {V.dofmap.index_map_bs} component(s): use "
+            'functionspace(mesh, ("Lagrange", 1, (3,)))'
+        )
+
+
+class CellDeterminants:
+    """Smallest ``det F = det(I + grad u)`` over the cells of a P1 vector displacement.
+
+    On affine tetrahedra ``F`` is constant per cell: ``det F = V_current / V_reference`` with
+    signed volumes from the vertex positions. The reference volumes are kept; each call costs a
+    few vector operations per cell (collective).
+
+    Args:
+        V: the P1 vector space (dimension 3) of the displacement.
+    """
+
+    def __init__(self, V: dolfinx.fem.FunctionSpace):
+        from fenics_matdepth.depth import _p1_dof_coordinates
+
+        mesh = V.mesh
+        self._comm = mesh.comm
+        num_owned = mesh.topology.index_map(3).size_local
+        self._cells = np.asarray(V.dofmap.list).reshape(-1, 4)[:num_owned]
+        self._X = _p1_dof_coordinates(V)
+        self._vol6 = _signed_volumes6(self._X[self._cells])
+
+    def local_min(self, u_local: np.ndarray) -> float:
+        """This rank's smallest det F for the local (owned + ghost) displacement values."""
+        if self._cells.shape[0] == 0:
+            return np.inf
+        x = self._X + np.asarray(u_local).reshape(-1, 3)
+        det = _signed_volumes6(x[self._cells]) / self._vol6
+        value = float(det.min())
+        return value if np.isfinite(value) else -np.inf
+
+    def min(self, u: dolfinx.fem.Function | np.ndarray) -> float:
+        """Smallest det F over all cells (collective); NaN displacements give ``-inf``.
+
+        Args:
+            u: the displacement Function (ghost values current), or its local array.
+        """
+        values = u.x.array if isinstance(u, dolfinx.fem.Function) else u
+        return self._comm.allreduce(self.local_min(values), op=MPI.MIN)
