@@ -177,7 +177,9 @@ def test_coincident_unglued_surfaces_are_bodies_in_contact(layout):
     mesh = _mesh(cells, X, layout)
     contact = _contact(mesh)
     assert contact.num_bodies == 2
-    assert contact.energy() == 0.0
+    # Zero up to round-off: a face lying on a split tetrahedron's face has depth 0 in exact
+    # arithmetic, about 1e-18 after the centroid's interpolation (the pressed state: ~1e-4).
+    assert contact.energy() <= 1e-12
     upper = np.flatnonzero(contact.body_of_vertex == contact.body_of_vertex[-1])
     u = contact.u
     imap = u.function_space.dofmap.index_map
