@@ -14,6 +14,7 @@ __version__ = "0.1.0"
 from fenics_matdepth import contact, geometry, materials
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import material_depth
+from fenics_matdepth.dynamics import BackwardEuler, Newmark, TimeStep, solve_time_steps
 from fenics_matdepth.solvers import (
     ContactProblem,
     LoadStep,
@@ -23,11 +24,14 @@ from fenics_matdepth.solvers import (
 )
 
 __all__ = [
+    "BackwardEuler",
     "ContactOperator",
     "ContactProblem",
     "LoadStep",
+    "Newmark",
     "NonlinearContactProblem",
     "SolveResult",
+    "TimeStep",
     "__version__",
     "contact",
     "geometry",
@@ -35,4 +39,5 @@ __all__ = [
     "materials",
     "propose_penalty",
     "solve_load_steps",
+    "solve_time_steps",
 ]
