@@ -130,6 +130,10 @@ class _Integrator:
         """The new velocity from the new acceleration (UFL or arrays alike)."""
         raise NotImplementedError
 
+    def _velocity_slope(self, dt):
+        """d velocity / du (a number times the identity)."""
+        raise NotImplementedError
+
     # -- UFL ------------------------------------------------------------------------------------
 
     @property
@@ -156,16 +160,22 @@ class _Integrator:
             )
         return rho
 
-    def inertia(self, v: ufl.Argument, rho=None) -> ufl.Form:
+    def inertia(self, v: ufl.Argument, rho=None, damping=None) -> ufl.Form:
         """The inertia term ``rho * inner(acceleration, v) * dx`` of the residual.
 
         Args:
             v: the test function.
             rho: density; default the integrator's.
+            damping: mass-proportional (Rayleigh) damping coefficient c (1/T): adds the
+                viscous force ``c * rho * inner(velocity, v) * dx``.
         """
-        return self._density(rho) * ufl.inner(self.acceleration, v) * self.dx
+        rho = self._density(rho)
+        form = rho * ufl.inner(self.acceleration, v) * self.dx
+        if damping is not None:
+            form += damping * rho * ufl.inner(self.velocity, v) * self.dx
+        return form
 
-    def incremental_energy(self, Psi: ufl.Form | None, rho=None) -> ufl.Form:
+    def incremental_energy(self, Psi: ufl.Form | None, rho=None, damping=None) -> ufl.Form:
         """The incremental potential of a step, whose derivative is the dynamic residual.
 
         ``Pi(u) = (c / 2) int rho |u - u_pred|^2 dx + Psi(u)``, where ``a = c (u - u_pred)`` is
@@ -178,12 +188,20 @@ class _Integrator:
             Psi: the static energy functional (strain energy minus the potential of conservative
                 loads), a UFL form of ``u``; None for inertia alone.
             rho: density; default the integrator's.
+            damping: the mass-proportional damping coefficient of :meth:`inertia`: adds
+                ``int c rho |velocity|^2 / (2 s) dx``, ``s = d velocity / du`` (Newmark
+                ``gamma / (beta dt)``, backward Euler ``1 / dt``), whose derivative is the
+                viscous force.
         """
         rho = self._density(rho)
         dt = self._dt
         du = self.u - self._predictor(self.u_prev, self.v_prev, self.a_prev, dt)
-        kinetic = 0.5 * self._coefficient(dt) * rho * ufl.inner(du, du) * self.dx
-        return kinetic if Psi is None else kinetic + Psi
+        potential = 0.5 * self._coefficient(dt) * rho * ufl.inner(du, du) * self.dx
+        if damping is not None:
+            velocity = self.velocity
+            slope = self._velocity_slope(dt)
+            potential += 0.5 * damping * rho / slope * ufl.inner(velocity, velocity) * self.dx
+        return potential if Psi is None else potential + Psi
 
     # -- state ----------------------------------------------------------------------------------
 
@@ -310,6 +328,14 @@ class _Integrator:
             "kinetic", lambda: 0.5 * self._density() * ufl.inner(self.v_prev, self.v_prev) * self.dx
         )
 
+    def trial_kinetic_energy(self) -> float:
+        """``int rho |velocity(u)|^2 / 2 dx`` of the current ``u`` taken as the new step, before
+        :meth:`advance` (collective; F L)."""
+        return self._scalar(
+            "trial_kinetic",
+            lambda: 0.5 * self._density() * ufl.inner(self.velocity, self.velocity) * self.dx,
+        )
+
     def linear_momentum(self) -> np.ndarray:
         """``int rho v dx`` of the last converged state, (3,) (collective; mass L / T)."""
         rho = self._density()
@@ -384,6 +410,9 @@ class Newmark(_Integrator):
     def _velocity(self, v_prev, a_prev, a_new, u_new, u_prev, dt):
         return v_prev + dt * ((1.0 - self.gamma) * a_prev + self.gamma * a_new)
 
+    def _velocity_slope(self, dt):
+        return self.gamma / (self.beta * dt)
+
 
 class BackwardEuler(_Integrator):
     """Backward (implicit) Euler on the first-order system: ``v_{n+1} = (u_{n+1} - u_n) / dt``,
@@ -417,6 +446,9 @@ class BackwardEuler(_Integrator):
 
     def _velocity(self, v_prev, a_prev, a_new, u_new, u_prev, dt):
         return (u_new - u_prev) / dt
+
+    def _velocity_slope(self, dt):
+        return 1.0 / dt
 
 
 # -- the time-step loop ---------------------------------------------------------------------------
@@ -479,21 +511,23 @@ class _Solvable(typing.Protocol):
     def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
 
 
+def _form_value(form, comm, missing: float = 0.0) -> float:
+    if form is None:
+        return missing
+    return comm.allreduce(float(np.real(dolfinx.fem.assemble_scalar(form))))
+
+
 def _record(step, t, dt, result, cuts, problem, integrator, forms, seconds, comm) -> TimeStep:
     contact = getattr(problem, "contact", None)
     diag = contact.diagnostics() if contact is not None else {}
-
-    def energy(key: str) -> float:
-        if forms[key] is None:
-            return 0.0
-        return comm.allreduce(float(np.real(dolfinx.fem.assemble_scalar(forms[key]))))
 
     kinetic = integrator.kinetic_energy() if integrator.rho is not None else np.nan
     return TimeStep(
         step=step, t=t, dt=dt, iterations=result.iterations,
         residual_norms=result.residual_norms, cuts=cuts, diagnostics=diag,
-        kinetic_energy=kinetic, strain_energy=energy("strain") if forms["strain"] else np.nan,
-        contact_energy=diag.get("energy", 0.0), external_work=energy("external"), seconds=seconds,
+        kinetic_energy=kinetic, strain_energy=_form_value(forms["strain"], comm, np.nan),
+        contact_energy=diag.get("energy", 0.0), external_work=_form_value(forms["external"], comm),
+        seconds=seconds,
     )  # fmt: skip
 
 
@@ -511,6 +545,7 @@ def solve_time_steps(
     strain_energy: ufl.Form | None = None,
     external_work: ufl.Form | None = None,
     max_penetration: float | None = None,
+    max_energy_change: float | None = None,
     grow_after: int = 2,
     predict: bool = True,
     progress: bool = True,
@@ -545,6 +580,11 @@ def solve_time_steps(
             reported per step and subtracted in ``TimeStep.total_energy``.
         max_penetration: reject converged steps whose contact penetration exceeds this (L);
             at ``min_dt`` the step is accepted anyway.
+        max_energy_change: reject converged steps that change the total energy (kinetic +
+            strain + contact - external work) by more than this (F L); at ``min_dt`` the step
+            is accepted anyway. An error control for energy-conserving schemes (average
+            acceleration): where a step does not resolve an impact, it loses or gains energy.
+            Needs the integrator's ``rho`` and ``strain_energy``.
         grow_after: successful steps before dt doubles.
         predict: start each Newton solve from ``integrator.predict()`` (else from the last
             state).
@@ -562,6 +602,8 @@ def solve_time_steps(
         raise ValueError("the integrator must be built on the problem's unknown (problem.u)")
     if not (np.isfinite(dt) and dt > 0.0):
         raise ValueError(f"dt must be a positive number, got {dt}")
+    if max_energy_change is not None and (strain_energy is None or integrator.rho is None):
+        raise ValueError("max_energy_change needs strain_energy= and the integrator's rho")
     if grow_after < 1:
         raise ValueError(f"grow_after must be >= 1, got {grow_after}")
     comm = u.function_space.mesh.comm
@@ -604,10 +646,11 @@ def solve_time_steps(
                 result = problem.solve(raise_on_failure=False)
                 if not result.converged:
                     failure = result.failure_message()
-                elif max_penetration is not None and contact is not None:
-                    depth = contact.max_penetration()
-                    if depth > max_penetration and this_dt / 2 >= min_dt:
-                        failure = f"penetration {depth:.3e} > max_penetration {max_penetration:.3e}"
+                elif this_dt / 2 >= min_dt:
+                    failure = _rejection(
+                        contact, integrator, forms, comm, history[-1], max_penetration,
+                        max_energy_change,
+                    )  # fmt: skip
             except (RuntimeError, FloatingPointError, PETSc.Error) as err:
                 failure = str(err)
             if not comm.allreduce(failure is not None, op=MPI.LOR):
@@ -641,6 +684,25 @@ def solve_time_steps(
             if successes >= grow_after and step_dt < max_dt:
                 step_dt, successes = min(2.0 * step_dt, max_dt), 0
     return history
+
+
+def _rejection(contact, integrator, forms, comm, last, max_penetration, max_energy_change):
+    """Why a converged step is rejected by the step controller, or None."""
+    if max_penetration is not None and contact is not None:
+        depth = contact.max_penetration()
+        if depth > max_penetration:
+            return f"penetration {depth:.3e} > max_penetration {max_penetration:.3e}"
+    if max_energy_change is not None:
+        energy = (
+            integrator.trial_kinetic_energy()
+            + _form_value(forms["strain"], comm)
+            + (contact.energy() if contact is not None else 0.0)
+            - _form_value(forms["external"], comm)
+        )
+        change = energy - last.total_energy
+        if abs(change) > max_energy_change:
+            return f"energy change {change:.3e} beyond max_energy_change {max_energy_change:.3e}"
+    return None
 
 
 def _print_step(r: TimeStep) -> None:

@@ -14,6 +14,7 @@ import scipy.linalg
 import ufl
 
 import fenics_matdepth as fm
+from fenics_matdepth.solvers import SolveResult
 
 # -- a cantilever without contact -------------------------------------------------------------
 
@@ -318,10 +319,11 @@ def _free_block(comm, make_integrator, gravity: float = 9.81):
     F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
     psi = fm.materials.neo_hookean(F_def, mu, kappa)
     g = ufl.as_vector((0.0, 0.0, -gravity))
+    dx = ufl.dx(domain=mesh)
     integrator = make_integrator(u)
-    residual = integrator.inertia(v) + ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
-    residual -= 2.0 * ufl.inner(g, v) * ufl.dx
-    potential = psi * ufl.dx - 2.0 * ufl.inner(g, u) * ufl.dx
+    residual = integrator.inertia(v) + ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * dx
+    residual -= 2.0 * ufl.inner(g, v) * dx
+    potential = psi * dx - 2.0 * ufl.inner(g, u) * dx
     return mesh, u, integrator, residual, potential
 
 
@@ -361,7 +363,8 @@ def test_free_fall_is_integrated_exactly(method):
 
 @pytest.mark.parametrize("method", ["newmark", "backward_euler"])
 def test_incremental_energy_derivative_is_the_residual(method):
-    """d Pi / du = rho a . v + dPsi, assembled, at a state that is not a solution."""
+    """d Pi / du = rho a . v + c rho velocity . v + dPsi (mass-proportional damping c),
+    assembled, at a state that is not a solution."""
     comm = MPI.COMM_WORLD
 
     def make(u):
@@ -375,7 +378,9 @@ def test_incremental_energy_derivative_is_the_residual(method):
         f.x.array[:] = 0.01 * rng.standard_normal(f.x.array.size)
         f.x.scatter_forward()
     integrator.dt = 0.02  # a changed dt reaches both forms
-    Pi = integrator.incremental_energy(potential)
+    residual += integrator.inertia(ufl.TestFunction(u.function_space), damping=3.0)
+    residual -= integrator.inertia(ufl.TestFunction(u.function_space))  # damping term alone
+    Pi = integrator.incremental_energy(potential, damping=3.0)
     b_pi = dolfinx.fem.petsc.assemble_vector(
         dolfinx.fem.form(ufl.derivative(Pi, u, ufl.TestFunction(u.function_space)))
     )
@@ -400,3 +405,204 @@ def test_integrator_rejects_bad_parameters():
         integrator.dt = -1.0
     with pytest.raises(ValueError, match="density"):
         integrator.kinetic_energy()
+
+
+# -- impacts ------------------------------------------------------------------------------------
+
+
+def _ball_collision(offset: float):
+    comm = MPI.COMM_WORLD
+    impact = _Impact(_two_balls(comm, offset=offset), lambda u: fm.Newmark(u, 0.005, rho=RHO_BALL),
+                     _approach(1.0))  # fmt: skip
+    momentum0 = impact.integrator.linear_momentum()
+    angular0 = impact.integrator.angular_momentum()
+    bodies0 = impact.body_momenta()
+    history = impact.run(0.22, 0.005, progress=False)
+    return impact, history, momentum0, angular0, bodies0
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.25], ids=["head_on", "off_centre"])
+def test_colliding_balls_conserve_momentum_and_energy(offset):
+    """Two equal balls (no gravity, no Dirichlet condition) collide at 1 + 1 velocity units:
+    contact forces are internal, so the total linear momentum stays what it was to round-off,
+    the angular momentum to the accuracy of the trapezoidal rule (it is exact for neither
+    Newmark nor any other non-symplectic scheme, but close), and average-acceleration Newmark
+    keeps the total energy (kinetic + strain + contact) within 2 % through the impact. The
+    balls touch, exchange momentum and separate."""
+    impact, history, momentum0, angular0, bodies0 = _ball_collision(offset)
+    scale = np.abs(bodies0).max()  # one ball's momentum
+    momentum = impact.integrator.linear_momentum()
+    assert np.abs(momentum - momentum0).max() <= 1e-9 * scale, (momentum, momentum0)
+    energy = np.array([r.total_energy for r in history])
+    drift = np.abs(energy - energy[0]).max() / energy[0]
+    assert drift < 0.02, drift
+    assert max(r.active_pairs for r in history) > 0
+    assert history[-1].active_pairs == 0  # apart again
+    bodies = impact.body_momenta()
+    # each ball's momentum along x has turned round (the left ball was moving right)
+    left = int(np.argmax(bodies0[:, 0]))
+    assert bodies[left, 0] < -0.5 * bodies0[left, 0], bodies
+    angular = impact.integrator.angular_momentum()
+    if offset > 0.0:
+        reference = abs(angular0[2])  # m v offset: about the z axis
+        assert reference > 0.1 * scale * offset
+        assert np.abs(angular - angular0).max() <= 1e-4 * reference, (angular, angular0)
+        # the glancing impact deflects the balls sideways: y momenta of opposite signs
+        assert bodies[left, 1] * bodies[1 - left, 1] < 0.0
+        assert abs(bodies[left, 1]) > 0.05 * scale
+    if MPI.COMM_WORLD.rank == 0:
+        change = np.abs(angular - angular0).max()
+        print(f"offset {offset}: energy drift {drift:.2e}, momentum change "
+              f"{np.abs(momentum - momentum0).max():.1e}, angular momentum change "
+              f"{change:.1e} of {np.abs(angular0).max():.3e}")  # fmt: skip
+
+
+def _ball_over_block(comm, h: float = 0.17):
+    """A ball of radius 0.4 at 0.05 above a 1 x 1 x 0.3 block whose bottom is z = -0.3."""
+    return _gmsh_bodies(
+        comm,
+        lambda occ: [occ.addBox(-0.5, -0.5, -0.3, 1.0, 1.0, 0.3), occ.addSphere(0, 0, 0.45, 0.4)],
+        h,
+    )
+
+
+def _dropped_ball(make_integrator, **run):
+    comm = MPI.COMM_WORLD
+    impact = _Impact(
+        _ball_over_block(comm), make_integrator,
+        lambda x: np.vstack((0.0 * x[0], 0.0 * x[0], np.where(x[2] > 0.02, -1.0, 0.0))),
+        bcs_at=lambda x: np.isclose(x[2], -0.3), gravity=10.0,
+    )  # fmt: skip
+    # the ball is the body of the highest vertex
+    V = impact.V
+    n = V.dofmap.index_map.size_local
+    X = V.tabulate_dof_coordinates()[:n]
+    body = impact.contact.body_of_vertex[V.dofmap.index_map.local_to_global(np.arange(n))]
+    highest = (float(X[:, 2].max()), int(body[np.argmax(X[:, 2])])) if n else (-np.inf, -1)
+    ball = max(comm.allgather(highest))[1]
+    vertical = [impact.body_momenta()[ball, 2]]
+
+    def track(record: fm.TimeStep) -> None:
+        vertical.append(impact.body_momenta()[ball, 2])
+
+    history = impact.run(0.5, 0.02, on_step=track, progress=False, **run)
+    return history, np.asarray(vertical)
+
+
+NOMINAL_DT = 0.02
+
+
+def test_dropped_ball_bounces_and_the_controller_cuts_dt_at_impact():
+    """A ball thrown down onto a clamped block under gravity, average-acceleration Newmark with
+    the energy-error control: dt is cut where the ball hits the block and grows back to the
+    nominal step in flight; the ball bounces back up nearly as fast as it came down and the
+    total energy (with the work of gravity) stays within 3 %."""
+    history, vertical = _dropped_ball(
+        lambda u: fm.Newmark(u, NOMINAL_DT, rho=RHO_BALL), min_dt=NOMINAL_DT / 16,
+        max_energy_change=1e-3,
+    )  # fmt: skip
+    dt = np.array([r.dt for r in history[1:]])
+    contact = np.array([r.active_pairs > 0 for r in history[1:]])
+    t = np.array([r.t for r in history[1:]])
+    first_contact = t[np.argmax(contact)]
+    # nominal steps until the ball arrives; cut steps around the impact only
+    assert np.all(dt[t < first_contact - 2 * NOMINAL_DT] == NOMINAL_DT)
+    assert dt[contact].min() <= NOMINAL_DT / 4
+    assert sum(r.cuts for r in history) > 0
+    # in flight between the two impacts dt is back at the nominal step
+    in_flight = (t > 0.22) & (t < 0.42)
+    assert in_flight.any() and np.all(dt[in_flight] == NOMINAL_DT) and not contact[in_flight].any()
+    assert (
+        vertical[0] < 0.0
+        and vertical.max() > 0.9 * np.abs(vertical[: np.argmax(contact) + 2]).max()
+    )
+    energy = np.array([r.total_energy for r in history])
+    drift = np.abs(energy - energy[0]).max() / energy[0]
+    assert drift < 0.03, drift
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"dropped ball, Newmark: {len(history) - 1} steps, smallest dt {dt.min():.4g}, "
+              f"energy drift {drift:.2e}")  # fmt: skip
+
+
+def test_dropped_ball_loses_energy_with_backward_euler():
+    """The same throw with backward Euler at the nominal step: the energy falls at every step,
+    the bounce is feeble and the ball ends nearly at rest on the block."""
+    history, vertical = _dropped_ball(lambda u: fm.BackwardEuler(u, NOMINAL_DT, rho=RHO_BALL))
+    energy = np.array([r.total_energy for r in history])
+    kinetic0 = history[0].kinetic_energy
+    assert np.all(np.diff(energy) <= 1e-9 * kinetic0), np.diff(energy)
+    assert energy[-1] < energy[0] - kinetic0, (energy[0], energy[-1])
+    assert 0.0 < vertical.max() < 0.5 * np.abs(vertical).max()
+    assert history[-1].active_pairs > 0 and history[-1].kinetic_energy < 0.1 * kinetic0
+
+
+# -- the controller with injected failures ------------------------------------------------------
+
+
+class _FailsOnLongSteps:
+    """Wraps a problem: a solve with the integrator's dt above ``limit``, or reaching past
+    ``t_max``, fails (leaving NaN in u, as a diverged solve would); a successful one sets u to
+    the last converged state + 1."""
+
+    def __init__(self, problem, integrator, limit: float, t_max: float = np.inf):
+        self.problem, self.integrator, self.limit, self.t_max = problem, integrator, limit, t_max
+        self.u, self.contact = problem.u, problem.contact
+        self.attempts: list[tuple[float, np.ndarray]] = []
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult:
+        dt = self.integrator.dt
+        self.attempts.append((dt, self.integrator.u_prev.x.array.copy()))
+        if dt > self.limit + 1e-12 or self.integrator.t + dt > self.t_max + 1e-12:
+            self.u.x.array[:] = np.nan
+            return SolveResult(False, -1, 3, np.array([1.0, 2.0, 4.0]))
+        self.u.x.array[:] = self.integrator.u_prev.x.array + 1.0
+        return SolveResult(True, 2, 1, np.array([1.0, 1e-12]))
+
+
+def _flaky(limit: float, t_max: float = np.inf):
+    comm = MPI.COMM_WORLD
+    mesh, u, integrator, residual, _ = _free_block(
+        comm, lambda u: fm.Newmark(u, 0.5, rho=1.0), gravity=0.0
+    )
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=100.0)
+    problem = fm.ContactProblem(residual, u, contact, petsc_options_prefix="flaky_")
+    return _FailsOnLongSteps(problem, integrator, limit, t_max), integrator
+
+
+def test_time_steps_cut_retry_from_the_last_state_and_grow_back():
+    flaky, integrator = _flaky(limit=0.3)
+    written, seen = [], []
+    history = fm.solve_time_steps(
+        flaky, integrator, 1.0, 0.5, writer=written.append, on_step=seen.append,
+        grow_after=1, progress=False,
+    )  # fmt: skip
+    # 0.5 fails -> 0.25 (cut), 0.25 (a clean step: grow), 0.5 fails -> 0.25 (cut), 0.25
+    assert [r.t for r in history] == [0.0, 0.25, 0.5, 0.75, 1.0]
+    assert [r.cuts for r in history[1:]] == [1, 0, 1, 0]
+    assert [r.dt for r in history[1:]] == [0.25] * 4
+    assert written == [0.25, 0.5, 0.75, 1.0] and seen == history[1:]
+    # every attempt starts from the last converged state, never from a failed one
+    starts = [start for _, start in flaky.attempts]
+    assert all(np.all(np.isfinite(s)) for s in starts)
+    assert [dt for dt, _ in flaky.attempts] == [0.5, 0.25, 0.25, 0.5, 0.25, 0.25]
+    assert [float(s[0]) for s in starts] == [0.0, 0.0, 1.0, 2.0, 2.0, 3.0]
+    assert np.all(integrator.u_prev.x.array == 4.0) and np.all(flaky.u.x.array == 4.0)
+    # velocity of the accepted steps (Newmark, from rest, 1 per 0.25): advance() ran each time
+    assert np.all(np.isfinite(integrator.v_prev.x.array))
+
+    # without cuts, dt doubles after grow_after steps, up to max_dt
+    flaky, integrator = _flaky(limit=1.0)
+    history = fm.solve_time_steps(
+        flaky, integrator, 1.5, 0.125, max_dt=0.5, grow_after=2, progress=False
+    )
+    assert [r.dt for r in history[1:]] == [0.125, 0.125, 0.25, 0.25, 0.5, 0.25]
+
+
+def test_time_steps_give_up_below_min_dt_keeping_the_last_state():
+    flaky, integrator = _flaky(limit=1.0, t_max=0.5)
+    with pytest.raises(RuntimeError, match=r"stopped at t = 0\.5"):
+        fm.solve_time_steps(flaky, integrator, 1.0, 0.5, min_dt=0.1, progress=False)
+    # 0.5 converged; 0.5, 0.25, 0.125 failed; 0.0625 < min_dt
+    assert [dt for dt, _ in flaky.attempts] == [0.5, 0.5, 0.25, 0.125]
+    assert integrator.t == 0.5
+    assert np.all(flaky.u.x.array == 1.0) and np.all(integrator.u_prev.x.array == 1.0)
