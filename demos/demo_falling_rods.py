@@ -97,7 +97,7 @@ def report(message: str) -> None:
 # ### The scene
 #
 # SI units. The mesh script `meshes/rods.py` builds the scene with gmsh: square rods of side
-# 1 cm and length 8 cm, 2.5 cm apart, on a 2 cm thick foundation; then tilts everything by
+# 1 cm and length 8 cm, 2.5 cm apart, on a 4 cm thick foundation; then tilts everything by
 # 45° about the $y$ axis. Each rod is a structured mesh, 2 x 2 cells across (so it has interior
 # vertices, where its material depth is positive) and 6 layers along; the foundation is
 # meshed freely with 20 mm elements (15 mm in the reduced run).
@@ -113,7 +113,7 @@ if quick:
     t_end = 0.2  # s
 else:
     geometry = rods.RodsGeometry(layers=6, foundation_size=0.02)
-    t_end = 0.4  # s
+    t_end = 0.3  # s
 domain, cell_tags = rods.rods_mesh(comm, geometry)
 V = fem.functionspace(domain, ("Lagrange", 1, (3,)))
 num_tets = domain.topology.index_map(3).size_global
@@ -130,8 +130,8 @@ report(
 # A soft gel: $E = 20$ kPa, $\nu = 0.3$, $\rho = 1000$ kg/m³. Under its own weight a rod
 # bends like a cantilever with a tip deflection of the order of its length, so the rods fall
 # over onto their downhill neighbours and the foundation. Mass-proportional damping
-# $c = 2\ \mathrm{s}^{-1}$. Everything at or below the foundation's top face (the foundation
-# and the rods' bases) is clamped.
+# $c = 2\ \mathrm{s}^{-1}$. The foundation and the rods' bases, 1 mm above its top face, are
+# clamped.
 
 # +
 youngs_modulus, poisson_ratio, density = 20e3, 0.3, 1000.0  # Pa, -, kg/m^3
@@ -147,7 +147,9 @@ def height(x: np.ndarray) -> np.ndarray:
     return normal @ x
 
 
-support = fem.locate_dofs_geometrical(V, lambda x: height(x) <= 1e-9 * geometry.length)
+support = fem.locate_dofs_geometrical(
+    V, lambda x: height(x) <= geometry.base_gap + 1e-9 * geometry.length
+)
 bcs = [fem.dirichletbc(np.zeros(3), support, V)]
 # -
 
@@ -156,8 +158,13 @@ bcs = [fem.dirichletbc(np.zeros(3), support, V)]
 # The integrator holds the last converged displacement, velocity and acceleration; its
 # `acceleration` and `velocity` are UFL expressions of the unknown `u`. The incremental
 # potential (inertia, damping, strain energy, gravity; the contact energy is added by the
-# problem) has the residual as its derivative, so the line search can work on the energy.
-# The penalty is proposed from the stiffness and the rods' element size.
+# problem) has the residual as its derivative, so the line search could work on the energy
+# (`energy=`). Here it does not: on the full scene the energy line search stopped with
+# `DIVERGED_LINE_SEARCH` after 2 to 4 Newton iterations of the very first steps (the energy
+# no longer resolves the Newton steps' decrease, see `docs/solvers.md`), so the line search
+# judges steps by the residual norm, as in the concave-corner demo
+# (`MATDEPTH_RODS_ENERGY_LINE_SEARCH=1` switches the energy back on). The penalty is proposed
+# from the stiffness and the rods' element size.
 
 # +
 u = fem.Function(V, name="displacement")
@@ -181,9 +188,10 @@ depth = fm.material_depth(domain)
 depth.name = "material_depth"
 penalty = fm.propose_penalty(domain, youngs_modulus, factor=10.0, h=h)
 contact = fm.ContactOperator(u, depth, penalty)
+use_energy = os.environ.get("MATDEPTH_RODS_ENERGY_LINE_SEARCH", "0") not in ("", "0")
 problem = fm.ContactProblem(
-    residual, u, contact, bcs=bcs, energy=incremental, petsc_options_prefix="falling_rods_",
-    petsc_options={"snes_rtol": 1e-8, "snes_atol": 1e-11},
+    residual, u, contact, bcs=bcs, energy=incremental if use_energy else None,
+    petsc_options_prefix="falling_rods_", petsc_options={"snes_rtol": 1e-6, "snes_atol": 1e-9},
 )  # fmt: skip
 report(f"penalty {penalty:.3g} Pa/m; {contact.num_bodies} bodies")
 # -

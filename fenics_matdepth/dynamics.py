@@ -658,6 +658,9 @@ def solve_time_steps(
             cuts += 1
             successes = 0
             integrator.restore()
+            if progress and comm.rank == 0:
+                reason = (failure or "failed on another rank").split(";")[0]
+                print(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})", flush=True)
             if this_dt / 2 < min_dt:
                 integrator.dt = max(this_dt, min_dt)
                 if set_time is not None:
