@@ -15,6 +15,7 @@ from fenics_matdepth import checkpoint, contact, geometry, materials
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import depth_deficiency, material_depth
+from fenics_matdepth.dynamics import BackwardEuler, Newmark, TimeStep, solve_time_steps
 from fenics_matdepth.solvers import (
     ContactAssembler,
     ContactProblem,
@@ -25,13 +26,16 @@ from fenics_matdepth.solvers import (
 )
 
 __all__ = [
+    "BackwardEuler",
     "Checkpoint",
     "ContactAssembler",
     "ContactOperator",
     "ContactProblem",
     "LoadStep",
+    "Newmark",
     "NonlinearContactProblem",
     "SolveResult",
+    "TimeStep",
     "__version__",
     "checkpoint",
     "contact",
@@ -41,4 +45,5 @@ __all__ = [
     "materials",
     "propose_penalty",
     "solve_load_steps",
+    "solve_time_steps",
 ]
