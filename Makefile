@@ -5,7 +5,7 @@ NP ?= 2
 PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-bar demo-rods test test-serial test-mpi lint format bench env docs notebooks
+.PHONY: demo demo-bar demo-rods test test-serial test-mpi lint format bench env docs notebooks demo-snake
 
 demo:  ## the main job: the concave-corner comparison (paper section 5), pictures in demos/output/
 	$(FENICSX) python3 demos/demo_concave_corner.py
@@ -15,6 +15,9 @@ demo-bar:  ## the hyperelastic bar (no contact), pictures in demos/output/
 
 demo-rods:  ## falling rods (paper Fig. 24): implicit dynamics with contact, frames and GIF in demos/output/
 	$(FENICSX) python3 demos/demo_falling_rods.py
+
+demo-snake:  ## a snake swallows an apple (paper Fig. 23): frames, animation in demos/output/
+	$(FENICSX) python3 demos/demo_snake_apple.py
 
 test: test-serial test-mpi  ## serial suite, then the suite under mpirun -n $(NP)
 
