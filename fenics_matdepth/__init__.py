@@ -11,9 +11,10 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from fenics_matdepth import contact, geometry, materials
+from fenics_matdepth import contact, geometry, kinematics, materials
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import material_depth
+from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
 from fenics_matdepth.solvers import (
     ContactProblem,
     LoadStep,
@@ -27,12 +28,16 @@ __all__ = [
     "ContactProblem",
     "LoadStep",
     "NonlinearContactProblem",
+    "RigidRotation",
     "SolveResult",
     "__version__",
     "contact",
     "geometry",
+    "kinematics",
     "material_depth",
     "materials",
     "propose_penalty",
+    "rotation_displacement",
+    "rotation_matrix",
     "solve_load_steps",
 ]
