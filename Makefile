@@ -5,13 +5,16 @@ NP ?= 2
 PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-bar test test-serial test-mpi lint format bench env
+.PHONY: demo demo-bar demo-knee test test-serial test-mpi lint format bench env
 
 demo:  ## the main job: the concave-corner comparison (paper section 5), pictures in demos/output/
 	$(FENICSX) python3 demos/demo_concave_corner.py
 
 demo-bar:  ## the hyperelastic bar (no contact), pictures in demos/output/
 	$(FENICSX) python3 demos/demo_hyperelastic_bar.py
+
+demo-knee:  ## the paper's knee: a leg flexed 150 degrees in 50 steps (long), in demos/output/
+	$(FENICSX) nice -n 10 python3 demos/demo_knee.py
 
 test: test-serial test-mpi  ## serial suite, then the suite under mpirun -n $(NP)
 
