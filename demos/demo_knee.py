@@ -65,6 +65,7 @@ from petsc4py import PETSc
 import numpy as np
 import ufl
 from dolfinx import fem, io, plot
+from dolfinx.mesh import entities_to_geometry
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import interpolation_points
@@ -269,6 +270,13 @@ problem = fm.ContactProblem(
 
 # +
 Q = fem.functionspace(domain, ("DG", 0))
+mesh_x = domain.geometry.x
+n_cells_local = domain.topology.index_map(tdim).size_local
+cell_body = np.zeros(n_cells_local + domain.topology.index_map(tdim).num_ghosts, dtype=np.int32)
+cell_body[cell_tags.indices] = cell_tags.values
+domain_centroids = mesh_x[
+    np.asarray(entities_to_geometry(domain, tdim, np.arange(n_cells_local, dtype=np.int32), False))
+].mean(axis=1)
 det_F = fem.Function(Q, name="det_F")
 det_F_expr = fem.Expression(ufl.det(F), interpolation_points(Q))
 imap = V.dofmap.index_map
@@ -293,8 +301,6 @@ is_fold = np.zeros(imap.size_global, dtype=bool)
 is_fold[np.concatenate(comm.allgather(global_ids[fold_blocks]))] = True
 patella_X = np.concatenate(comm.allgather(X[patella_blocks]))
 h_boundary = stats["median_edge"]
-mesh_x = domain.geometry.x
-femur_x = np.concatenate(comm.allgather(X[vertices_of(leg.FEMUR)]))
 
 
 def patella_motion() -> tuple[np.ndarray, np.ndarray, float]:
@@ -318,7 +324,14 @@ def measure(t: float) -> dict:
     """Diagnostics of the converged state at load factor t (collective)."""
     det_F.interpolate(det_F_expr)
     n_cells = domain.topology.index_map(tdim).size_local
-    min_det = comm.allreduce(float(det_F.x.array[:n_cells].min()), op=MPI.MIN)
+    local = det_F.x.array[Q.dofmap.list[:n_cells, 0]]  # cell order
+    worst = int(np.argmin(local)) if n_cells else -1
+    where = (
+        (float(local[worst]), int(cell_body[worst]), domain_centroids[worst].tolist())
+        if n_cells
+        else (np.inf, 0, [0.0, 0.0, 0.0])
+    )
+    min_det, worst_body, worst_at = min(comm.allgather(where))
     dofs, values = contact.gradient_array()
     force = np.zeros(3)
     on_patella = is_patella[dofs // 3]
@@ -334,6 +347,8 @@ def measure(t: float) -> dict:
         "max_penetration": float(diag["max_penetration"]),
         "penetration_over_h": float(diag["max_penetration"] / h_boundary),
         "min_det_F": min_det,
+        "min_det_F_body": leg.BODIES.get(worst_body, "?"),
+        "min_det_F_at": worst_at,
         "patella_displacement": shift.tolist(),
         "patella_centroid": centroid.tolist(),
         "patella_rotation_degrees": rotation,
@@ -352,9 +367,6 @@ def measure(t: float) -> dict:
 
 # +
 cells, types, points = plot.vtk_mesh(V)
-n_cells_local = domain.topology.index_map(tdim).size_local
-cell_body = np.zeros(n_cells_local + domain.topology.index_map(tdim).num_ghosts, dtype=np.int32)
-cell_body[cell_tags.indices] = cell_tags.values
 owned_cells = cells.reshape(-1, 5)[:n_cells_local].ravel()
 pv = offscreen_pyvista() if comm.rank == 0 else None
 frames: list[np.ndarray] = []
@@ -413,7 +425,7 @@ per_step: list[dict] = []
 frames_angles: list[float] = []
 timing_totals = dict.fromkeys(fm.solvers.TIMING_KEYS, 0.0)
 body_field = fem.Function(Q, name="body")
-body_field.x.array[: cell_body.size] = cell_body
+body_field.x.array[Q.dofmap.list[:, 0]] = cell_body
 body_field.x.scatter_forward()
 with io.VTXWriter(comm, output / "knee_tags.bp", [body_field]) as tags_file:
     tags_file.write(0.0)
@@ -436,7 +448,9 @@ def after_step(t: float) -> None:
     dx_, dy_, dz_ = m["patella_displacement"]
     report(
         f"    {m['degrees']:6.1f} deg: penetration/h {m['penetration_over_h']:.3f}, "
-        f"min det F {m['min_det_F']:.3f}, patella moved ({dx_:+.1f}, {dy_:+.1f}, {dz_:+.1f}) mm "
+        f"min det F {m['min_det_F']:.3f} ({m['min_det_F_body']} at "
+        f"{np.round(m['min_det_F_at'], 0).tolist()}), "
+        f"patella moved ({dx_:+.1f}, {dy_:+.1f}, {dz_:+.1f}) mm "
         f"turned {m['patella_rotation_degrees']:+.1f} deg, patella contact force "
         f"({fx:+.1f}, {fy:+.1f}, {fz:+.1f}) N, fold skin vertices in contact "
         f"{m['fold_skin_vertices_in_contact']}"
