@@ -5,7 +5,7 @@ NP ?= 2
 PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200
 PYTEST_ARGS ?=
 
-.PHONY: demo demo-bar demo-rods test test-serial test-mpi lint format bench env docs notebooks demo-snake
+.PHONY: demo demo-bar demo-rods test test-serial test-mpi lint format bench env docs notebooks demo-snake demo-knee
 
 demo:  ## the main job: the concave-corner comparison (paper section 5), pictures in demos/output/
 	$(FENICSX) python3 demos/demo_concave_corner.py
@@ -18,6 +18,9 @@ demo-rods:  ## falling rods (paper Fig. 24): implicit dynamics with contact, fra
 
 demo-snake:  ## a snake swallows an apple (paper Fig. 23): frames, animation in demos/output/
 	$(FENICSX) python3 demos/demo_snake_apple.py
+
+demo-knee:  ## the paper's knee: a leg flexed 150 degrees in 50 steps (long), in demos/output/
+	$(FENICSX) nice -n 10 python3 demos/demo_knee.py
 
 test: test-serial test-mpi  ## serial suite, then the suite under mpirun -n $(NP)
 

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from fenics_matdepth import checkpoint, contact, geometry, materials
+from fenics_matdepth import checkpoint, contact, geometry, kinematics, materials
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import depth_deficiency, material_depth
 from fenics_matdepth.dynamics import BackwardEuler, Newmark, TimeStep, solve_time_steps
+from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
 from fenics_matdepth.solvers import (
     ContactAssembler,
     ContactProblem,
@@ -34,6 +35,7 @@ __all__ = [
     "LoadStep",
     "Newmark",
     "NonlinearContactProblem",
+    "RigidRotation",
     "SolveResult",
     "TimeStep",
     "__version__",
@@ -41,9 +43,12 @@ __all__ = [
     "contact",
     "depth_deficiency",
     "geometry",
+    "kinematics",
     "material_depth",
     "materials",
     "propose_penalty",
+    "rotation_displacement",
+    "rotation_matrix",
     "solve_load_steps",
     "solve_time_steps",
 ]

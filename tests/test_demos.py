@@ -9,6 +9,7 @@ These tests start their own MPI jobs, so they run in the serial pass of the suit
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
@@ -28,6 +29,7 @@ REDUCED = {
     "demo_concave_corner.py": {"MATDEPTH_DEMO_QUICK": "1"},
     "demo_falling_rods.py": {"MATDEPTH_DEMO_QUICK": "1"},
     "demo_snake_apple.py": {"MATDEPTH_DEMO_QUICK": "1"},
+    "demo_knee.py": {"MATDEPTH_DEMO_QUICK": "1"},
 }
 
 
@@ -108,6 +110,8 @@ def _falling_rods_claims(output: Path) -> None:
     for picture in ("falling_rods_energy.png", "falling_rods.gif"):
         assert (output / picture).stat().st_size > 0
     assert summary["frames"]
+
+
 def _snake_apple_claims(output: Path) -> None:
     """The snake swallows the apple (paper Fig. 23), as the demo's summary reports it.
 
@@ -132,11 +136,33 @@ def _snake_apple_claims(output: Path) -> None:
         assert (output / picture).stat().st_size > 0
 
 
+def _knee_claims(output: Path) -> None:
+    """The reduced knee (coarse leg, the first few degrees of flexion): every step converged,
+    the contact surfaces penetrate less than a tenth of the boundary element size, no element
+    is inverted, and the patella is pulled distally by the ligament (nothing prescribes it)."""
+    summary = json.loads((output / "knee.json").read_text())
+    assert summary["completed"], summary["failure"]
+    steps = summary["steps"]
+    assert len(steps) >= summary["num_steps"]
+    assert steps[-1]["degrees"] == pytest.approx(summary["target_degrees"])
+    for step in steps:
+        assert step["penetration_over_h"] < 0.1, step
+        assert step["min_det_F"] > 0.0, step
+    # distal (-z) motion of the patella grows with flexion
+    dz = [step["patella_displacement"][2] for step in steps]
+    assert dz[-1] < 0.0, dz
+    assert all(b <= a + 1e-9 for a, b in itertools.pairwise(dz)), dz
+    assert summary["mesh"]["inverted"] == 0
+    for picture in ("knee_skin.png", "knee_cutaway.png", "knee_flexion.gif"):
+        assert (output / picture).stat().st_size > 0
+
+
 #: Checks of what a demo claims, run on its output folder after it succeeded.
 CLAIMS = {
     "demo_concave_corner.py": _concave_corner_claims,
     "demo_falling_rods.py": _falling_rods_claims,
     "demo_snake_apple.py": _snake_apple_claims,
+    "demo_knee.py": _knee_claims,
 }
 
 

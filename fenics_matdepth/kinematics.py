@@ -1,0 +1,115 @@
+"""Prescribed rigid motions as Dirichlet data: a bone rotated about a joint axis, a clamp turned.
+
+* :func:`rotation_matrix`: the 3 x 3 matrix of a rotation about an axis (Rodrigues' formula).
+* :func:`rotation_displacement`: the displacement ``u = R (X - c) + c - X`` of reference points
+  ``X`` rotated about the axis through the centre ``c``.
+* :class:`RigidRotation`: a ``dolfinx.fem.Function`` holding that displacement at every dof of a
+  vector space, updated for a new angle with :meth:`RigidRotation.set_angle`; hand it to
+  ``dolfinx.fem.dirichletbc`` once and change the angle at each load step::
+
+      tibia = fm.RigidRotation(V, center=(0, 0, 0), axis=(-1, 0, 0))
+      bc = dolfinx.fem.dirichletbc(tibia.function, tibia_dofs)
+      fm.solve_load_steps(problem, lambda t: tibia.set_angle(t * np.radians(150)), 50)
+
+Angles are in radians; the sense of rotation is right-handed about ``axis``.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import dolfinx
+import numpy as np
+
+__all__ = ["RigidRotation", "rotation_displacement", "rotation_matrix"]
+
+
+def _unit(axis: typing.Sequence[float]) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64).reshape(-1)
+    norm = float(np.linalg.norm(axis)) if axis.shape == (3,) else 0.0
+    if not (np.isfinite(norm) and norm > 0.0):
+        raise ValueError(f"the rotation axis must be a non-zero 3-vector, got {axis!r}")
+    return axis / norm
+
+
+def rotation_matrix(axis: typing.Sequence[float], angle: float) -> np.ndarray:
+    """Matrix of the right-handed rotation by ``angle`` (radians) about ``axis`` (any length).
+
+    Rodrigues' formula ``R = I + sin(a) K + (1 - cos(a)) K^2`` with ``K`` the cross-product
+    matrix of the unit axis.
+    """
+    k = _unit(axis)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+
+
+def rotation_displacement(
+    points: np.ndarray,
+    center: typing.Sequence[float],
+    axis: typing.Sequence[float],
+    angle: float,
+) -> np.ndarray:
+    """Displacement of ``points`` (n, 3) rotated by ``angle`` about the axis through ``center``.
+
+    Args:
+        points: reference coordinates (n, 3) (length L).
+        center: a point of the rotation axis (L).
+        axis: direction of the axis (right-handed sense of rotation).
+        angle: rotation angle (radians).
+
+    Returns:
+        ``R (X - c) + c - X``, shape (n, 3) (L).
+    """
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    R = rotation_matrix(axis, angle)
+    return (X - c) @ (R - np.eye(3)).T
+
+
+class RigidRotation:
+    """A displacement Function that rotates a vector space's dofs rigidly about an axis.
+
+    The Function holds the rotation's displacement at *every* dof of ``V`` (a blocked Lagrange
+    space of value size 3, any degree); a Dirichlet condition built on it applies the rotation
+    on the dofs it is given (a bone's vertices, a clamped face).
+
+    Args:
+        V: vector function space (value shape (3,)) of the displacement.
+        center: a point of the rotation axis (L).
+        axis: direction of the axis (right-handed sense of rotation).
+        angle: initial angle (radians); default 0 (zero displacement).
+
+    Attributes:
+        function: the displacement Function (name ``"rigid_rotation"``).
+        angle: the angle it currently holds (radians).
+    """
+
+    def __init__(
+        self,
+        V: dolfinx.fem.FunctionSpace,
+        center: typing.Sequence[float],
+        axis: typing.Sequence[float],
+        angle: float = 0.0,
+    ):
+        if V.dofmap.index_map_bs != 3:
+            raise ValueError(
+                "RigidRotation needs a vector space of value size 3, e.g. "
+                'functionspace(mesh, ("Lagrange", 1, (3,)))'
+            )
+        self.center = np.asarray(center, dtype=np.float64).reshape(3)
+        self.axis = _unit(axis)
+        self.function = dolfinx.fem.Function(V, name="rigid_rotation")
+        # one row per block (owned and ghost), the block's reference coordinates
+        self._X = V.tabulate_dof_coordinates()[:, :3].copy()
+        self.angle = float("nan")
+        self.set_angle(angle)
+
+    def set_angle(self, angle: float) -> None:
+        """Set the Function to the rotation by ``angle`` (radians), owned and ghost dofs."""
+        self.angle = float(angle)
+        values = rotation_displacement(self._X, self.center, self.axis, self.angle)
+        self.function.x.array[:] = values.reshape(-1)
+
+    def __call__(self, angle: float) -> None:
+        """Same as :meth:`set_angle` (so the object can be a ``set_load`` callback)."""
+        self.set_angle(angle)

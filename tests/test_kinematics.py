@@ -1,0 +1,106 @@
+"""Rigid-rotation Dirichlet data: exact rotations of known points, composition, zero angle, and
+a Dirichlet condition that moves a body's vertices rigidly."""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+import pytest
+
+import fenics_matdepth as fm
+from fenics_matdepth.kinematics import rotation_displacement, rotation_matrix
+
+
+def test_quarter_turns_of_known_points():
+    # a right-handed quarter turn about +z takes x to y and y to -x
+    R = rotation_matrix((0.0, 0.0, 2.0), np.pi / 2)
+    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(R @ [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(R @ [0.0, 0.0, 1.0], [0.0, 0.0, 1.0], atol=1e-15)
+    # about the axis through (1, 1, 0), parallel to x: (1, 1, 1) -> (1, 0, 0) after +90 deg
+    u = rotation_displacement(
+        [[1.0, 1.0, 1.0], [5.0, 1.0, 0.0]], (1.0, 1.0, 0.0), (1, 0, 0), np.pi / 2
+    )
+    np.testing.assert_allclose(u[0], [0.0, -1.0, -1.0], atol=1e-14)
+    np.testing.assert_allclose(u[1], [0.0, 0.0, 0.0], atol=1e-14)  # a point on the axis stays
+
+
+def test_rotation_is_orthogonal_and_keeps_distances_to_the_axis():
+    rng = np.random.default_rng(3)
+    axis, angle = rng.normal(size=3), 2.1
+    R = rotation_matrix(axis, angle)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-14)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-14)
+    np.testing.assert_allclose(R @ axis, axis, atol=1e-14)
+    # the angle between a vector normal to the axis and its image is the rotation angle
+    normal = np.cross(axis, rng.normal(size=3))
+    cos = normal @ (R @ normal) / (normal @ normal)
+    assert np.arccos(cos) == pytest.approx(angle, abs=1e-12)
+
+
+def test_composition_about_one_axis_adds_the_angles():
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(20, 3))
+    center, axis = (0.3, -1.0, 2.0), (1.0, 2.0, -0.5)
+    a, b = 0.4, -1.3
+    once = X + rotation_displacement(X, center, axis, a)
+    twice = once + rotation_displacement(once, center, axis, b)
+    direct = X + rotation_displacement(X, center, axis, a + b)
+    np.testing.assert_allclose(twice, direct, atol=1e-13)
+    # and a full turn is the identity
+    np.testing.assert_allclose(rotation_displacement(X, center, axis, 2 * np.pi), 0.0, atol=1e-13)
+
+
+def test_zero_angle_is_zero_displacement():
+    X = np.random.default_rng(0).normal(size=(7, 3))
+    assert np.all(rotation_displacement(X, (1, 2, 3), (0, 1, 0), 0.0) == 0.0)
+
+
+def test_bad_axis_raises():
+    with pytest.raises(ValueError, match="non-zero 3-vector"):
+        rotation_matrix((0.0, 0.0, 0.0), 1.0)
+    with pytest.raises(ValueError, match="non-zero 3-vector"):
+        rotation_matrix((1.0, 0.0), 1.0)
+
+
+def test_rigid_rotation_dirichlet_condition_on_a_mesh():
+    """The Function holds the rotation at every vertex; a Dirichlet condition on some vertices
+    moves exactly those, and their distances stay those of the reference (rigid)."""
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 3, 3, 3)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    center, axis = (0.5, 0.0, 0.0), (-1.0, 0.0, 0.0)
+    rotation = fm.RigidRotation(V, center, axis)
+    assert np.all(rotation.function.x.array == 0.0)
+    angle = np.radians(30.0)
+    rotation.set_angle(angle)
+    X = V.tabulate_dof_coordinates()
+    u = rotation.function.x.array.reshape(-1, 3)
+    np.testing.assert_allclose(u, rotation_displacement(X, center, axis, angle), atol=1e-14)
+    # rotation about -x by +30 deg: y -> y cos + z sin, z -> -y sin + z cos (about the centre)
+    y, z = X[:, 1], X[:, 2]
+    expected_y = y * np.cos(angle) + z * np.sin(angle)
+    expected_z = -y * np.sin(angle) + z * np.cos(angle)
+    np.testing.assert_allclose(X[:, 1] + u[:, 1], expected_y, atol=1e-14)
+    np.testing.assert_allclose(X[:, 2] + u[:, 2], expected_z, atol=1e-14)
+
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.0))
+    dofs = dolfinx.fem.locate_dofs_topological(V, 2, top)
+    bc = dolfinx.fem.dirichletbc(rotation.function, dofs)
+    w = dolfinx.fem.Function(V)
+    bc.set(w.x.array)
+    moved = w.x.array.reshape(-1, 3)
+    on_top = np.isclose(X[:, 2], 1.0)
+    np.testing.assert_allclose(moved[on_top], u[on_top], atol=1e-14)
+    assert np.all(moved[~on_top] == 0.0)
+    # callable form, back to zero
+    rotation(0.0)
+    assert np.all(rotation.function.x.array == 0.0) and rotation.angle == 0.0
+
+
+def test_rigid_rotation_needs_a_vector_space():
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 1, 1, 1)
+    Q = dolfinx.fem.functionspace(mesh, ("Lagrange", 1))
+    with pytest.raises(ValueError, match="value size 3"):
+        fm.RigidRotation(Q, (0, 0, 0), (0, 0, 1))
