@@ -40,6 +40,7 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 
+from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.solvers import SolveResult, _write
 
 __all__ = ["BackwardEuler", "Newmark", "TimeStep", "solve_time_steps"]
@@ -588,7 +589,8 @@ def solve_time_steps(
         grow_after: successful steps before dt doubles.
         predict: start each Newton solve from ``integrator.predict()`` (else from the last
             state).
-        progress: print one line per converged step on rank 0.
+        progress: report each converged step on rank 0: a progress bar in a terminal or a
+            notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
 
     Returns:
         The history: the initial state (step 0) and every converged step, in time order.
@@ -625,67 +627,69 @@ def solve_time_steps(
         set_time(t)
     initial = SolveResult(True, 0, 0, np.zeros(0))
     history = [_record(0, t, 0.0, initial, 0, problem, integrator, forms, 0.0, comm)]
-    if progress and comm.rank == 0:
-        _print_step(history[-1])
     step_dt, successes = min(float(dt), max_dt), 0
-    while t_end - t > tol:
-        cuts, tic = 0, time.perf_counter()
-        while True:
-            this_dt = min(step_dt, t_end - t)
-            if t_end - (t + this_dt) < tol:
-                this_dt = t_end - t
-            integrator.dt = this_dt
-            if set_time is not None:
-                set_time(t + this_dt)
-            if predict:
-                integrator.predict()
-            else:
-                integrator.restore()
-            failure = None
-            try:
-                result = problem.solve(raise_on_failure=False)
-                if not result.converged:
-                    failure = result.failure_message()
-                elif this_dt / 2 >= min_dt:
-                    failure = _rejection(
-                        contact, integrator, forms, comm, history[-1], max_penetration,
-                        max_energy_change,
-                    )  # fmt: skip
-            except (RuntimeError, FloatingPointError, PETSc.Error) as err:
-                failure = str(err)
-            if not comm.allreduce(failure is not None, op=MPI.LOR):
-                break
-            cuts += 1
-            successes = 0
-            integrator.restore()
-            if progress and comm.rank == 0:
-                reason = (failure or "failed on another rank").split(";")[0]
-                print(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})", flush=True)
-            if this_dt / 2 < min_dt:
-                integrator.dt = max(this_dt, min_dt)
+    reporter = StepProgress(comm, t, t_end, "t", enabled=progress)
+    reporter.message(_step_line(history[-1]))
+    try:
+        while t_end - t > tol:
+            cuts, tic = 0, time.perf_counter()
+            while True:
+                this_dt = min(step_dt, t_end - t)
+                if t_end - (t + this_dt) < tol:
+                    this_dt = t_end - t
+                integrator.dt = this_dt
                 if set_time is not None:
-                    set_time(t)
-                raise RuntimeError(
-                    f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} failed "
-                    f"with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: {failure}"
-                )
-            step_dt = this_dt / 2
-        integrator.advance()
-        t = integrator.t
-        record = _record(
-            len(history), t, this_dt, result, cuts, problem, integrator, forms,
-            time.perf_counter() - tic, comm,
-        )  # fmt: skip
-        history.append(record)
-        _write(writer, u, t)
-        if on_step is not None:
-            on_step(record)
-        if progress and comm.rank == 0:
-            _print_step(record)
-        if cuts == 0:
-            successes += 1
-            if successes >= grow_after and step_dt < max_dt:
-                step_dt, successes = min(2.0 * step_dt, max_dt), 0
+                    set_time(t + this_dt)
+                if predict:
+                    integrator.predict()
+                else:
+                    integrator.restore()
+                failure = None
+                try:
+                    result = problem.solve(raise_on_failure=False)
+                    if not result.converged:
+                        failure = result.failure_message()
+                    elif this_dt / 2 >= min_dt:
+                        failure = _rejection(
+                            contact, integrator, forms, comm, history[-1], max_penetration,
+                            max_energy_change,
+                        )  # fmt: skip
+                except (RuntimeError, FloatingPointError, PETSc.Error) as err:
+                    failure = str(err)
+                if not comm.allreduce(failure is not None, op=MPI.LOR):
+                    break
+                cuts += 1
+                successes = 0
+                integrator.restore()
+                reason = (failure or "failed on another rank").split(";")[0]
+                reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
+                if this_dt / 2 < min_dt:
+                    integrator.dt = max(this_dt, min_dt)
+                    if set_time is not None:
+                        set_time(t)
+                    raise RuntimeError(
+                        f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} "
+                        f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: "
+                        f"{failure}"
+                    )
+                step_dt = this_dt / 2
+            integrator.advance()
+            t = integrator.t
+            record = _record(
+                len(history), t, this_dt, result, cuts, problem, integrator, forms,
+                time.perf_counter() - tic, comm,
+            )  # fmt: skip
+            history.append(record)
+            _write(writer, u, t)
+            if on_step is not None:
+                on_step(record)
+            reporter.step(t, _step_line(record))
+            if cuts == 0:
+                successes += 1
+                if successes >= grow_after and step_dt < max_dt:
+                    step_dt, successes = min(2.0 * step_dt, max_dt), 0
+    finally:
+        reporter.close()
     return history
 
 
@@ -708,11 +712,11 @@ def _rejection(contact, integrator, forms, comm, last, max_penetration, max_ener
     return None
 
 
-def _print_step(r: TimeStep) -> None:
-    print(
+def _step_line(r: TimeStep) -> str:
+    """The one-line report of a converged time step."""
+    return (
         f"step {r.step:4d}  t {r.t:.5g}  dt {r.dt:.3g}  newton {r.iterations:2d}  cuts {r.cuts}  "
         f"pairs {r.active_pairs:5d}  max pen {r.max_penetration:.2e}  "
         f"E kin {r.kinetic_energy:.4e}  strain {r.strain_energy:.4e}  "
-        f"contact {r.contact_energy:.3e}  total {r.total_energy:.6e}  {r.seconds:.2f} s",
-        flush=True,
+        f"contact {r.contact_energy:.3e}  total {r.total_energy:.6e}  {r.seconds:.2f} s"
     )

@@ -29,6 +29,7 @@ import ufl
 
 from fenics_matdepth._checks import CellDeterminants, collective_error
 from fenics_matdepth._compat import NewtonSolverProblemBase, bc_constrains_space
+from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator
 
@@ -802,7 +803,8 @@ def solve_load_steps(
         writer: called with each converged state: a ``dolfinx.io.XDMFFile`` (``write_function(u,
             t)``; write the mesh first), a ``dolfinx.io.VTXWriter`` on ``u`` (``write(t)``), or
             any callable ``writer(t)``.
-        progress: print one line per converged step on rank 0.
+        progress: report each converged step on rank 0: a progress bar in a terminal or a
+            notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
         predictor: ``"extrapolate"``: start each step from the last converged displacement plus
             the last converged increment scaled to the new load increment (linear
             extrapolation, as FEBio and Abaqus do), unless that would invert an element;
@@ -852,70 +854,73 @@ def solve_load_steps(
         _collective_call(comm, f"set_load({t:.6g})", "Fix the set_load callback.", set_load, t)
     saver = Checkpoint(checkpoint, u.function_space) if checkpoint is not None else None
     saved = u.x.array.copy()
-    while (end - t) * np.sign(nominal) > 1e-12 * abs(nominal):
-        t_next = t + dt
-        if (end - t_next) * np.sign(nominal) < 0.0:
-            t_next, dt = end, end - t
-        cuts, tic = 0, time.perf_counter()
-        while True:
-            u.x.array[:] = saved
-            _collective_call(
-                comm, f"set_load({t_next:.6g})",
-                f"Fix the set_load callback; u holds the converged state at load {t:.6g}.",
-                set_load, t_next,
-            )  # fmt: skip
-            if predictor == "extrapolate" and previous is not None and dt_previous != 0.0:
-                guess = saved + (dt / dt_previous) * (saved - previous)
-                if cells.min(guess) > 0.0:
-                    u.x.array[:] = guess
-            try:
-                result = problem.solve(raise_on_failure=False)
-                failure = None if result.converged else result.failure_message()
-            except (RuntimeError, FloatingPointError, PETSc.Error) as err:
-                failure = str(err)
-            failed = comm.allreduce(failure is not None, op=MPI.LOR)
-            if not failed:
-                break
-            cuts += 1
-            u.x.array[:] = saved
-            if abs(dt) / 2 < min_step:
-                _collective_call(comm, f"set_load({t:.6g})", "", set_load, t)
-                raise RuntimeError(
-                    f"load stepping stopped at load factor {t:.6g}: the step to {t_next:.6g} "
-                    f"failed with an increment of {abs(dt):.3g} (min_step {min_step:.3g}). "
-                    f"Last failure: {failure}"
-                )
-            dt /= 2
+    reporter = StepProgress(comm, start, end, "load", enabled=progress)
+    try:
+        while (end - t) * np.sign(nominal) > 1e-12 * abs(nominal):
             t_next = t + dt
-        previous, dt_previous = saved, dt
-        t = t_next
-        saved = u.x.array.copy()
-        diag = problem.contact.diagnostics()
-        diag["min_det_F"] = cells.min(u)
-        diag["rejected_states"] = result.rejected_states
-        step = LoadStep(
-            t, result.iterations, result.residual_norms, cuts, diag, time.perf_counter() - tic
-        )
-        steps.append(step)
-        _collective_call(
-            comm, f"writer at load {t:.6g}",
-            f"Check the writer (path writable, file open); u holds the converged state at load "
-            f"{t:.6g}.", _write, writer, u, t,
-        )  # fmt: skip
-        if progress and comm.rank == 0:
-            print(
+            if (end - t_next) * np.sign(nominal) < 0.0:
+                t_next, dt = end, end - t
+            cuts, tic = 0, time.perf_counter()
+            while True:
+                u.x.array[:] = saved
+                _collective_call(
+                    comm, f"set_load({t_next:.6g})",
+                    f"Fix the set_load callback; u holds the converged state at load {t:.6g}.",
+                    set_load, t_next,
+                )  # fmt: skip
+                if predictor == "extrapolate" and previous is not None and dt_previous != 0.0:
+                    guess = saved + (dt / dt_previous) * (saved - previous)
+                    if cells.min(guess) > 0.0:
+                        u.x.array[:] = guess
+                try:
+                    result = problem.solve(raise_on_failure=False)
+                    failure = None if result.converged else result.failure_message()
+                except (RuntimeError, FloatingPointError, PETSc.Error) as err:
+                    failure = str(err)
+                failed = comm.allreduce(failure is not None, op=MPI.LOR)
+                if not failed:
+                    break
+                cuts += 1
+                u.x.array[:] = saved
+                if abs(dt) / 2 < min_step:
+                    _collective_call(comm, f"set_load({t:.6g})", "", set_load, t)
+                    raise RuntimeError(
+                        f"load stepping stopped at load factor {t:.6g}: the step to {t_next:.6g} "
+                        f"failed with an increment of {abs(dt):.3g} (min_step {min_step:.3g}). "
+                        f"Last failure: {failure}"
+                    )
+                dt /= 2
+                t_next = t + dt
+            previous, dt_previous = saved, dt
+            t = t_next
+            saved = u.x.array.copy()
+            diag = problem.contact.diagnostics()
+            diag["min_det_F"] = cells.min(u)
+            diag["rejected_states"] = result.rejected_states
+            step = LoadStep(
+                t, result.iterations, result.residual_norms, cuts, diag, time.perf_counter() - tic
+            )
+            steps.append(step)
+            _collective_call(
+                comm, f"writer at load {t:.6g}",
+                f"Check the writer (path writable, file open); u holds the converged state at load "
+                f"{t:.6g}.", _write, writer, u, t,
+            )  # fmt: skip
+            reporter.step(
+                t,
                 f"step {done + len(steps):3d}  load {t:.4g}  newton {result.iterations:2d} it  "
                 f"|r| {result.residual_norms[-1]:.2e}  cuts {cuts}  "
                 f"active pairs {diag['active_pairs']}  "
                 f"max penetration {diag['max_penetration']:.3e}  "
                 f"min det F {diag['min_det_F']:.3f}  {step.seconds:.2f} s",
-                flush=True,
             )
-        if abs(dt) < abs(nominal):
-            dt = min(abs(dt) * 2, abs(nominal)) * np.sign(nominal)
-        if saver is not None:
-            saver.save(
-                {"u": saved, "u_previous": previous}, load=t, dt=float(dt),
-                dt_previous=float(dt_previous), steps=done + len(steps), **run,
-            )  # fmt: skip
+            if abs(dt) < abs(nominal):
+                dt = min(abs(dt) * 2, abs(nominal)) * np.sign(nominal)
+            if saver is not None:
+                saver.save(
+                    {"u": saved, "u_previous": previous}, load=t, dt=float(dt),
+                    dt_previous=float(dt_previous), steps=done + len(steps), **run,
+                )  # fmt: skip
+    finally:
+        reporter.close()
     return steps
