@@ -60,7 +60,6 @@ TIMING_KEYS = (
     "bulk_assembly",
     "contact_update",
     "contact_assembly",
-    "matrix_compaction",
     "linear_solve",
 )
 
@@ -136,21 +135,6 @@ def _assemble_jacobian(A, a, bcs, contact, watch):
         contact.add_jacobian(A)
 
 
-def _without_zeros(A: PETSc.Mat) -> PETSc.Mat:
-    """A copy of the AIJ matrix ``A`` without its explicitly stored zeros (collective)."""
-    indptr, indices, values = A.getValuesCSR()
-    r0, _ = A.getOwnershipRange()
-    rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
-    keep = (values != 0.0) | (indices == rows + r0)  # keep the diagonal, even when zero
-    counts = np.bincount(rows[keep], minlength=indptr.size - 1)
-    new_indptr = np.concatenate(([0], np.cumsum(counts))).astype(PETSc.IntType)
-    P = PETSc.Mat().createAIJ(
-        A.getSizes(), csr=(new_indptr, indices[keep], values[keep]), comm=A.getComm()
-    )
-    P.assemble()
-    return P
-
-
 class ContactProblem:
     """Nonlinear problem F(u) + dE_contact/du = 0 solved with PETSc SNES.
 
@@ -203,11 +187,13 @@ class ContactProblem:
         comm = u.function_space.mesh.comm
 
         self._A = contact.create_matrix(self._J)
-        self._P: PETSc.Mat | None = None
         # Ghosted, as dolfinx's assembly and lifting read and write ghost entries.
         self._b = u.x.petsc_vec.duplicate()
         self._x = u.x.petsc_vec.duplicate()
+        # the residual merit function's last evaluation: point and residual
+        self._x_trial = u.x.petsc_vec.duplicate()
         self._b_trial = u.x.petsc_vec.duplicate()
+        self._trial_valid = False
         self.snes = PETSc.SNES().create(comm)
         self.snes.setOptionsPrefix(self.prefix)
         opts = PETSc.Options()
@@ -238,26 +224,23 @@ class ContactProblem:
 
     def _residual(self, snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
         self._set_state(x)
+        if self._trial_valid and x.equal(self._x_trial):
+            # SNES asks for the residual at the step the line search just accepted, which the
+            # residual merit function (`_objective`) has assembled already
+            self._b_trial.copy(b)
+            return
         _assemble_residual(b, self._F, self._J, self.bcs, x, self.contact, self._watch)
 
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
         _assemble_jacobian(A, self._J, self.bcs, self.contact, self._watch)
-        # The linear solver factorises a copy without the pattern's explicit zeros: the margin
-        # couplings of inactive pairs would otherwise be fill-in for the LU (on a 40k-tet
-        # press they tripled the nonzeros and made MUMPS eight times slower). SNES hands the
-        # matrices it holds to the KSP after this callback, so the new copy is used now; the
-        # previous one is released at the next call, once nothing refers to it.
-        with self._watch("matrix_compaction"):
-            compact = _without_zeros(A)
-        snes.setJacobian(self._jacobian, A, compact)
-        if self._P is not None:
-            self._P.destroy()
-        self._P = compact
 
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         if not self._merit_is_energy:
+            self._trial_valid = False
             self._residual(snes, x, self._b_trial)
+            x.copy(self._x_trial)
+            self._trial_valid = True
             return 0.5 * self._b_trial.norm() ** 2
         self._set_state(x)
         comm = self.u.function_space.mesh.comm
@@ -306,7 +289,7 @@ class ContactProblem:
         if rebuild:
             with self._watch("contact_update"):
                 A = self.contact.create_matrix(self._J)
-            snes.setJacobian(self._jacobian, A, self._P if self._P is not None else A)
+            snes.setJacobian(self._jacobian, A, A)
             self._A.destroy()
             self._A = A
             self.pattern_rebuilds += 1
@@ -329,6 +312,7 @@ class ContactProblem:
         self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
         self._merit_is_energy, self._last_norm = True, np.inf
         self._energy_merit_allowed = True
+        self._trial_valid = False  # the load may have changed since
         self.u.x.petsc_vec.copy(self._x)
         dolfinx.fem.petsc.set_bc(self._x, self.bcs)
         self.snes.setConvergenceHistory(reset=True)
@@ -343,7 +327,7 @@ class ContactProblem:
         return result
 
     def __del__(self):
-        for obj in ("snes", "_A", "_P", "_b", "_x", "_b_trial"):
+        for obj in ("snes", "_A", "_b", "_x", "_x_trial", "_b_trial"):
             if getattr(self, obj, None) is not None:
                 getattr(self, obj).destroy()
 
