@@ -43,7 +43,9 @@ def _without_zeros(A: PETSc.Mat) -> PETSc.Mat:
     indptr, indices, values = A.getValuesCSR()
     rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
     keep = (values != 0.0) | (indices == rows)
-    new_indptr = np.concatenate(([0], np.cumsum(np.bincount(rows[keep], minlength=indptr.size - 1))))
+    new_indptr = np.concatenate(
+        ([0], np.cumsum(np.bincount(rows[keep], minlength=indptr.size - 1)))
+    )
     P = PETSc.Mat().createAIJ(
         A.getSizes(), csr=(new_indptr.astype(PETSc.IntType), indices[keep], values[keep])
     )
@@ -65,6 +67,7 @@ def factorise(M: PETSc.Mat, ordering: int) -> tuple[float, float]:
     ksp.setUp()
     first = time.process_time() - tic
     M.shift(0.0)  # new values, same pattern: what a Newton iteration hands the solver
+    ksp.setOperators(M)
     tic = time.process_time()
     ksp.setUp()
     again = time.process_time() - tic

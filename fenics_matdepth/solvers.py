@@ -194,6 +194,7 @@ class ContactProblem:
         self._x_trial = u.x.petsc_vec.duplicate()
         self._b_trial = u.x.petsc_vec.duplicate()
         self._trial_valid = False
+        self._residuals_reused = 0
         self.snes = PETSc.SNES().create(comm)
         self.snes.setOptionsPrefix(self.prefix)
         opts = PETSc.Options()
@@ -228,6 +229,7 @@ class ContactProblem:
             # SNES asks for the residual at the step the line search just accepted, which the
             # residual merit function (`_objective`) has assembled already
             self._b_trial.copy(b)
+            self._residuals_reused += 1
             return
         _assemble_residual(b, self._F, self._J, self.bcs, x, self.contact, self._watch)
 
