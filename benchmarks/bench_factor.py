@@ -66,7 +66,9 @@ def factorise(M: PETSc.Mat, ordering: int) -> tuple[float, float]:
     tic = time.process_time()
     ksp.setUp()
     first = time.process_time() - tic
-    M.shift(0.0)  # new values, same pattern: what a Newton iteration hands the solver
+    # "new values, same pattern", what a Newton iteration hands the solver: an assembly
+    # raises the matrix's state (a zero shift would not), so the factorisation is redone
+    M.assemble()
     ksp.setOperators(M)
     tic = time.process_time()
     ksp.setUp()
