@@ -488,7 +488,7 @@ if failure is not None:
 # +
 force_stiffness = timing_totals["bulk_assembly"] + timing_totals["contact_assembly"]
 collision = timing_totals["contact_update"]
-linear = timing_totals["linear_solve"] + timing_totals["matrix_compaction"]
+linear = timing_totals["linear_solve"]
 measured = force_stiffness + collision + linear
 split = {
     "force_stiffness": force_stiffness / measured if measured else 0.0,

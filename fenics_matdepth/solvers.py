@@ -69,7 +69,6 @@ TIMING_KEYS = (
     "bulk_assembly",
     "contact_update",
     "contact_assembly",
-    "matrix_compaction",
     "linear_solve",
 )
 
@@ -269,21 +268,6 @@ class ContactAssembler:
                 obj.destroy()
 
 
-def _without_zeros(A: PETSc.Mat) -> PETSc.Mat:
-    """A copy of the AIJ matrix ``A`` without its explicitly stored zeros (collective)."""
-    indptr, indices, values = A.getValuesCSR()
-    r0, _ = A.getOwnershipRange()
-    rows = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
-    keep = (values != 0.0) | (indices == rows + r0)  # keep the diagonal, even when zero
-    counts = np.bincount(rows[keep], minlength=indptr.size - 1)
-    new_indptr = np.concatenate(([0], np.cumsum(counts))).astype(PETSc.IntType)
-    P = PETSc.Mat().createAIJ(
-        A.getSizes(), csr=(new_indptr, indices[keep], values[keep]), comm=A.getComm()
-    )
-    P.assemble()
-    return P
-
-
 def _check_problem_inputs(u, contact, bcs) -> None:
     """The problem's ``u``, operator and boundary conditions must belong together."""
     if not isinstance(contact, ContactOperator):
@@ -363,11 +347,14 @@ class ContactProblem:
         self.prefix = petsc_options_prefix
         comm = u.function_space.mesh.comm
 
-        self._P: PETSc.Mat | None = None
         # Ghosted, as dolfinx's assembly and lifting read and write ghost entries.
         self._b = u.x.petsc_vec.duplicate()
         self._x = u.x.petsc_vec.duplicate()
+        # the residual merit function's last evaluation: point and residual
+        self._x_trial = u.x.petsc_vec.duplicate()
         self._b_trial = u.x.petsc_vec.duplicate()
+        self._trial_valid = False
+        self._residuals_reused = 0
         self.snes = PETSc.SNES().create(comm)
         self.snes.setOptionsPrefix(self.prefix)
         opts = PETSc.Options()
@@ -409,6 +396,12 @@ class ContactProblem:
 
     def _residual(self, snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
         self._set_state(x)
+        if self._trial_valid and x.equal(self._x_trial):
+            # SNES asks for the residual at the step the line search just accepted, which the
+            # residual merit function (`_objective`) has assembled already
+            self._b_trial.copy(b)
+            self._residuals_reused += 1
+            return
         if not self.assembler.residual(x, b):
             # An inadmissible trial state: b holds NaN, which the backtracking line search
             # answers by shortening the step (and SNES stops if the start is inadmissible).
@@ -419,21 +412,13 @@ class ContactProblem:
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
         self.assembler.jacobian(A)
-        # The linear solver factorises a copy without the pattern's explicit zeros: the margin
-        # couplings of inactive pairs would otherwise be fill-in for the LU (on a 40k-tet
-        # press they tripled the nonzeros and made MUMPS eight times slower). SNES hands the
-        # matrices it holds to the KSP after this callback, so the new copy is used now; the
-        # previous one is released at the next call, once nothing refers to it.
-        with self._watch("matrix_compaction"):
-            compact = _without_zeros(A)
-        snes.setJacobian(self._jacobian, A, compact)
-        if self._P is not None:
-            self._P.destroy()
-        self._P = compact
 
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         if not self._merit_is_energy:
+            self._trial_valid = False
             self._residual(snes, x, self._b_trial)
+            x.copy(self._x_trial)
+            self._trial_valid = True
             return 0.5 * self._b_trial.norm() ** 2
         self._set_state(x)
         return self.assembler.total_energy()
@@ -484,7 +469,7 @@ class ContactProblem:
         self._set_state(x)
 
         def register(A: PETSc.Mat) -> None:
-            snes.setJacobian(self._jacobian, A, self._P if self._P is not None else A)
+            snes.setJacobian(self._jacobian, A, A)
 
         self.assembler.rebuild_matrix_if_needed(register)
 
@@ -510,6 +495,7 @@ class ContactProblem:
         self._merit_is_energy, self._last_norm = True, np.inf
         self._energy_merit_allowed, self._bcs_met = True, False
         self.assembler.rejected_states = 0
+        self._trial_valid = False  # the load may have changed since
         self.u.x.petsc_vec.copy(self._x)
         self.snes.setConvergenceHistory(reset=True)
         self.snes.solve(None, self._x)
@@ -526,7 +512,7 @@ class ContactProblem:
         return result
 
     def __del__(self):
-        for obj in ("snes", "_P", "_b", "_x", "_b_trial"):
+        for obj in ("snes", "_b", "_x", "_x_trial", "_b_trial"):
             if getattr(self, obj, None) is not None:
                 getattr(self, obj).destroy()
         if getattr(self, "assembler", None) is not None:

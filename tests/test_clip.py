@@ -9,7 +9,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fenics_matdepth.geometry.clip import CLIP_TOL, _intersect_pairs, intersection_polygon
+from fenics_matdepth.geometry.clip import (
+    CLIP_TOL,
+    _intersect_pairs,
+    _near_pairs,
+    intersection_polygon,
+)
 
 # Float clipping works on barycentrics computed in floating point (error ~ 1e-16 times the
 # tetrahedron's condition number, at most ~1e3 for the configurations drawn here; values within
@@ -262,3 +267,57 @@ def test_batch_intersection_test_matches_polygon():
 def test_clip_tolerance_is_small():
     """The documented band is far below the area tolerance used above."""
     assert CLIP_TOL * 1e3 < AREA_RTOL
+
+
+def _sampled_distance(x_tri, x_tet, n=24) -> float:
+    """An upper bound of the triangle-tetrahedron distance: the least distance between points
+    sampled on the triangle and on the tetrahedron's faces (exact as n grows)."""
+    t = np.linspace(0.0, 1.0, n + 1)
+    a, b = np.meshgrid(t, t, indexing="ij")
+    inside = a + b <= 1.0
+    w = np.stack((1.0 - a[inside] - b[inside], a[inside], b[inside]), axis=1)
+    on_tri = w @ x_tri
+    faces = [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]
+    on_tet = np.vstack([w @ x_tet[f] for f in faces])
+    diff = on_tri[:, None, :] - on_tet[None, :, :]
+    return float(np.sqrt((diff**2).sum(axis=2).min()))
+
+
+def _one_pair_near(x_tri, x_tet, gap) -> bool:
+    x = np.vstack((x_tri, x_tet)).astype(float)
+    kept, _ = _near_pairs(
+        x, np.array([[0, 1, 2]]), np.array([[3, 4, 5, 6]]), np.zeros(1, np.int64),
+        np.zeros(1, np.int64), gap,
+    )  # fmt: skip
+    return kept.size == 1
+
+
+REFERENCE_TET = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("d", [0.05, 0.0999, 0.1001, 0.3])
+def test_near_pairs_face_parallel_triangle(d):
+    """A triangle parallel to the face z = 0 of the reference tetrahedron, at distance d below
+    it, is kept exactly when d <= gap (0.1): the face plane separates it otherwise."""
+    tri = np.array([[0.2, 0.2, -d], [0.6, 0.2, -d], [0.2, 0.6, -d]])
+    assert _one_pair_near(tri, REFERENCE_TET, 0.1) == (d <= 0.1)
+
+
+def test_near_pairs_triangle_plane_separates():
+    """A large triangle in the plane z = 1.2 lies 0.2 above the apex: dropped for gap 0.1
+    (only the triangle's plane separates them: no face plane has all its corners outside),
+    kept for gap 0.25."""
+    tri = np.array([[-5.0, -5.0, 1.2], [5.0, -5.0, 1.2], [0.0, 5.0, 1.2]])
+    assert not _one_pair_near(tri, REFERENCE_TET, 0.1)
+    assert _one_pair_near(tri, REFERENCE_TET, 0.25)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(point, min_size=3, max_size=3), st.lists(point, min_size=4, max_size=4))
+def test_near_pairs_never_drop_a_pair_within_gap(tri, tet):
+    """Conservative: a pair whose (sampled, hence over-estimated) distance is within the gap
+    is always kept."""
+    x_tri, x_tet = np.array(tri, dtype=float), np.array(tet, dtype=float)
+    gap = 0.3
+    if _sampled_distance(x_tri, x_tet) <= gap:
+        assert _one_pair_near(x_tri, x_tet, gap)

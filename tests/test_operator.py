@@ -109,6 +109,48 @@ def test_derivatives_match_finite_differences(integration):
     A.destroy()
 
 
+def _dense(comm, rows, cols, vals, n) -> np.ndarray:
+    """The n x n matrix summed over the ranks' (rows, cols, vals) entries."""
+    out = np.zeros((n, n))
+    np.add.at(out, (rows, cols), vals)
+    return comm.allreduce(out)
+
+
+@pytest.mark.parametrize("integration", ["area", "collocation"])
+def test_jacobian_insertion_matches_sorted_coo(integration):
+    """add_jacobian (pair Hessians summed by numba into the pattern's 3 x 3 blocks) puts into
+    the matrix exactly the duplicate-summed entries of hessian_coo (an independent sort of
+    all pair entries), with the Dirichlet rows and columns left out."""
+    comm = MPI.COMM_WORLD
+    mesh, V, _, op = _setup(comm, integration)
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    upper_top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.8))
+    bcs = [
+        dolfinx.fem.dirichletbc(
+            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, facets)
+        )
+        for facets in (bottom, upper_top)
+    ]
+    op.set_bcs(bcs)
+    a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    A = op.create_matrix(a)
+    A.zeroEntries()
+    op.add_jacobian(A)
+    n = 3 * op.num_vertices
+    indptr, indices, values = A.getValuesCSR()
+    r0, r1 = A.getOwnershipRange()
+    rows = np.repeat(np.arange(r0, r1), np.diff(indptr))
+    inserted = _dense(comm, rows, indices, values, n)
+    reference = _dense(comm, *op.hessian_coo(), n)
+    scale = np.abs(reference).max()
+    assert scale > 0.0
+    assert np.abs(inserted - reference).max() <= 1e-13 * scale
+    # the Dirichlet rows and columns stay empty, and there are some
+    fixed = np.flatnonzero(op._bc_mask)  # gathered: the same on every rank
+    assert len(fixed) > 0 and not inserted[fixed].any() and not inserted[:, fixed].any()
+    A.destroy()
+
+
 def _per_point(V, r) -> dict:
     """Residual summed per reference point over this rank's owned dofs.
 

@@ -78,6 +78,30 @@ def test_block_pressed_on_block_converges_quadratically():
     assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
 
 
+def test_residual_of_the_accepted_step_is_reused_and_exact():
+    """Once the line search judges steps by |F|^2 / 2, SNES's residual at an accepted step is
+    the one the line search assembled (not assembled again), and it is the residual there: the
+    final residual SNES holds equals a fresh assembly at the solution."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    problem.solve()
+    assert problem._residuals_reused > 0
+    held = problem.snes.getFunction()[0].copy()
+    fresh = held.duplicate()
+    x = problem.snes.getSolution().copy()
+    problem._trial_valid = False  # assemble, whatever the line search held
+    problem._residual(problem.snes, x, fresh)
+    diff = fresh.copy()
+    diff.axpy(-1.0, held)
+    # a residual from another point of the line search would differ by about |F| itself
+    assert held.norm() > 0.0 and diff.norm() <= 1e-10 * held.norm()
+    for vec in (held, fresh, x, diff):
+        vec.destroy()
+
+
 def _gap_closing(comm, solver: str, mesh=None):
     """The upper block starts 0.05 above the lower one (more than the pattern margin) and its
     top is pushed down 0.08 in two load steps: contact appears outside the first pattern."""

@@ -1133,3 +1133,125 @@ def collocation_energy(
     zero = np.zeros(1, dtype=INDEX)
     energy, grad, hess = _collocation_pairs(x, depth, weights, tet, zero, zero, penalty, True, True)
     return float(energy[0]), grad[0], hess[0]
+
+
+# ------------------------------------------------------------------------------------------
+# Assembly into a fixed sparsity pattern (no sorting of pair entries per iterate)
+# ------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _accumulate_vertex_blocks(keys, num_vertices, verts, hess, bc_mask, blocks, touched):
+    """Sum the pairs' Hessians into 3 x 3 blocks of a fixed vertex-coupling pattern.
+
+    Args:
+        keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        num_vertices: number of vertices of the key numbering.
+        verts: (np, m) vertices of each pair (m = 7 for area pairs, 5 for collocation).
+        hess: (np, 3 m, 3 m) pair Hessians, xyz interleaved in the order of ``verts``.
+        bc_mask: (3 num_vertices,) True on Dirichlet dofs, whose rows and columns are skipped.
+        blocks: (nk, 3, 3) output, added to (zero it first).
+        touched: (nk,) bool output, set True on every key a pair reaches.
+
+    Returns:
+        The number of vertex couplings not in ``keys`` (their entries are left out).
+    """
+    nvp = verts.shape[1]
+    nk = keys.shape[0]
+    missing = 0
+    for p in range(verts.shape[0]):
+        for a in range(nvp):
+            va = verts[p, a]
+            for b in range(nvp):
+                vb = verts[p, b]
+                key = va * num_vertices + vb
+                pos = np.searchsorted(keys, key)
+                if pos >= nk or keys[pos] != key:
+                    missing += 1
+                    continue
+                touched[pos] = True
+                for r in range(3):
+                    if bc_mask[3 * va + r]:
+                        continue
+                    for c in range(3):
+                        if not bc_mask[3 * vb + c]:
+                            blocks[pos, r, c] += hess[p, 3 * a + r, 3 * b + c]
+    return missing
+
+
+@njit(cache=True)
+def _count_missing_couplings(keys, num_vertices, verts):
+    """Number of vertex couplings of the pairs ``verts`` (np, m) that are not in ``keys``."""
+    nvp = verts.shape[1]
+    nk = keys.shape[0]
+    missing = 0
+    for p in range(verts.shape[0]):
+        for a in range(nvp):
+            for b in range(nvp):
+                key = verts[p, a] * num_vertices + verts[p, b]
+                pos = np.searchsorted(keys, key)
+                if pos >= nk or keys[pos] != key:
+                    missing += 1
+    return missing
+
+
+@njit(cache=True)
+def _blocks_to_csr(keys, num_vertices, blocks, touched):
+    """The touched 3 x 3 blocks as a CSR over dof rows, for ``MatSetValuesIJV``.
+
+    Args:
+        keys, num_vertices, blocks, touched: as in `_accumulate_vertex_blocks`.
+
+    Returns:
+        ``(rows, indptr, cols, vals)``: global dof rows (``3 va + r``), row pointers into
+        ``cols``/``vals``, global dof columns (sorted within a row) and values.
+    """
+    nk = keys.shape[0]
+    n_touched = 0
+    n_vrows = 0
+    last = -1
+    for k in range(nk):
+        if touched[k]:
+            n_touched += 1
+            va = keys[k] // num_vertices
+            if va != last:
+                n_vrows += 1
+                last = va
+    rows = np.empty(3 * n_vrows, dtype=np.int64)
+    indptr = np.empty(3 * n_vrows + 1, dtype=np.int64)
+    cols = np.empty(9 * n_touched, dtype=np.int64)
+    vals = np.empty(9 * n_touched, dtype=FLOAT)
+    indptr[0] = 0
+    row = 0
+    start = 0
+    k = 0
+    while k < nk:
+        if not touched[k]:
+            k += 1
+            continue
+        va = keys[k] // num_vertices
+        # the touched keys of vertex row va: k .. end (exclusive), g of them
+        g = 0
+        end = k
+        while end < nk and keys[end] // num_vertices == va:
+            if touched[end]:
+                g += 1
+            end += 1
+        for r in range(3):
+            rows[row + r] = 3 * va + r
+            indptr[row + r + 1] = start + 3 * g * (r + 1)
+        j = 0
+        for kk in range(k, end):
+            if not touched[kk]:
+                continue
+            vb = keys[kk] % num_vertices
+            for r in range(3):
+                base = start + 3 * g * r + 3 * j
+                for c in range(3):
+                    cols[base + c] = 3 * vb + c
+                    vals[base + c] = blocks[kk, r, c]
+            j += 1
+        start += 9 * g
+        row += 3
+        k = end
+    return rows, indptr, cols, vals

@@ -32,9 +32,12 @@ import numpy as np
 from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import (
+    _accumulate_vertex_blocks,
     _area_pairs_active,
     _area_pairs_max_depth,
+    _blocks_to_csr,
     _collocation_pairs,
+    _count_missing_couplings,
 )
 from fenics_matdepth.depth import (
     DepthDeficiency,
@@ -46,6 +49,7 @@ from fenics_matdepth.depth import (
     owned_exterior_facets,
 )
 from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.clip import _near_pairs
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
@@ -329,8 +333,12 @@ class ContactOperator:
         """This rank's gradient contributions: (global dofs, values), duplicates summed."""
         r = self._evaluate(True, False)
         dofs, vals = r["dofs"].ravel(), r["grad"].ravel()
-        uniq, inv = np.unique(dofs, return_inverse=True)
-        return uniq, np.bincount(inv, weights=vals, minlength=uniq.size)
+        # summed over the global dofs (linear in the mesh, no sort of the pair entries)
+        n = 3 * self.num_vertices
+        reached = np.zeros(n, dtype=bool)
+        reached[dofs] = True
+        uniq = np.flatnonzero(reached).astype(INDEX)
+        return uniq, np.bincount(dofs, weights=vals, minlength=n)[uniq]
 
     def add_residual(self, b: PETSc.Vec) -> None:
         """``b += dE/du`` for a dolfinx-assembled residual vector (collective).
@@ -356,7 +364,9 @@ class ContactOperator:
     def hessian_coo(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This rank's Hessian contributions (rows, cols, values), duplicates summed, sorted.
 
-        Entries in a Dirichlet row or column (see :meth:`set_bcs`) are left out.
+        Entries in a Dirichlet row or column (see :meth:`set_bcs`) are left out. Independent of
+        any matrix pattern (a sort of all pair entries); :meth:`add_jacobian` sums into the
+        pattern of :meth:`create_matrix` instead.
         """
         r = self._evaluate(False, True)
         dofs = r["dofs"]
@@ -385,19 +395,29 @@ class ContactOperator:
         """
         if bcs is not None:
             self.set_bcs(bcs)
-        rows, cols, vals = self.hessian_coo()
-        if self.pattern_needs_rebuild():
+        r = self._evaluate(False, True)
+        # Pair Hessians are summed by numba into 3 x 3 blocks of the pattern's vertex couplings
+        # (a binary search per coupling, no sort of the pairs' 441 entries each), and only the
+        # blocks that pairs reach are inserted.
+        keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
+        blocks = np.zeros((keys.size, 3, 3), dtype=FLOAT)
+        touched = np.zeros(keys.size, dtype=bool)
+        missing = _accumulate_vertex_blocks(
+            keys, self.num_vertices, r["verts"], r["hess"], self._bc_mask, blocks, touched
+        )
+        if "pattern_missing" not in self._cache:
+            self._cache["pattern_missing"] = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
+        if self._cache["pattern_missing"]:
             raise RuntimeError(
                 "contact couplings fall outside the matrix sparsity pattern: call "
                 "create_matrix(a) again (ContactProblem does this automatically), or build the "
                 "operator with a larger margin"
             )
+        rows, indptr, cols, vals = _blocks_to_csr(keys, self.num_vertices, blocks, touched)
         if rows.size:
-            starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-            indptr = np.r_[starts, rows.size].astype(PETSc.IntType)
             A.setValuesIJV(
-                indptr, cols.astype(PETSc.IntType), vals,
-                addv=PETSc.InsertMode.ADD_VALUES, rowmap=rows[starts].astype(PETSc.IntType),
+                indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType), vals,
+                addv=PETSc.InsertMode.ADD_VALUES, rowmap=rows.astype(PETSc.IntType),
             )  # fmt: skip
         A.assemble()
 
@@ -418,11 +438,10 @@ class ContactOperator:
         if "pattern_missing" in self._cache:
             return self._cache["pattern_missing"]
         verts = self._evaluate(False, False)["verts"]
-        keys = self._vertex_coupling_keys(verts)
         if self._pattern_keys is None:
-            missing = keys.size > 0
+            missing = verts.size > 0
         else:
-            missing = not np.all(np.isin(keys, self._pattern_keys, assume_unique=True))
+            missing = _count_missing_couplings(self._pattern_keys, self.num_vertices, verts) > 0
         self._cache["pattern_missing"] = bool(self.comm.allreduce(missing, op=MPI.LOR))
         return self._cache["pattern_missing"]
 
@@ -447,6 +466,10 @@ class ContactOperator:
 
         pa, pk = self._candidate_pairs(self.margin)
         if self.integration == "area":
+            # boxes inflated by the margin overlap for far more pairs than come within the
+            # margin (7x more than the active pairs on a flat interface); the couplings of the
+            # others would be explicit zeros that the factorisation treats as nonzeros
+            pa, pk = _near_pairs(self._x, self._tri, self._tets, pa, pk, self.margin)
             verts = np.hstack((self._tri[pa], self._tets[pk]))
         else:
             verts = np.hstack((self._nodes[pa, None], self._tets[pk]))

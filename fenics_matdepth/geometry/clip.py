@@ -358,6 +358,114 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     return count
 
 
+@njit(inline="always")
+def _axis_gap(xs, xt, nx, ny, nz):
+    """Gap between the projections of triangle ``xs`` and tetrahedron ``xt`` on the axis n
+    (length times |n|; negative when the projections overlap)."""
+    t_lo = np.inf
+    t_hi = -np.inf
+    for a in range(3):
+        d = xs[a, 0] * nx + xs[a, 1] * ny + xs[a, 2] * nz
+        t_lo = min(t_lo, d)
+        t_hi = max(t_hi, d)
+    k_lo = np.inf
+    k_hi = -np.inf
+    for a in range(4):
+        d = xt[a, 0] * nx + xt[a, 1] * ny + xt[a, 2] * nz
+        k_lo = min(k_lo, d)
+        k_hi = max(k_hi, d)
+    return max(k_lo - t_hi, t_lo - k_hi)
+
+
+@njit(cache=True)
+def _near_pairs(x, tri, tet, pair_tri, pair_tet, gap):
+    """The pairs that no separating axis holds more than ``gap`` apart (conservative).
+
+    The axes are those of the separating axis theorem for a triangle and a tetrahedron: the
+    triangle's normal, the four face normals and the 18 cross products of a triangle edge with
+    a tetrahedron edge. A pair is dropped when the projections of the two on one axis are more
+    than ``gap`` apart: they are then further apart than ``gap``. Every pair within ``gap`` is
+    kept (and some slightly further apart, whose closest points are two vertices or a vertex
+    and an edge, where the projected gap underestimates the distance).
+
+    Args:
+        x: (nv, 3) vertex coordinates (length).
+        tri: (nt, 3) triangles; tet: (nk, 4) tetrahedra (vertex indices).
+        pair_tri, pair_tet: (np,) candidate pairs.
+        gap: distance (length) up to which pairs are kept.
+
+    Returns:
+        The kept pairs (pair_tri, pair_tet), order preserved.
+    """
+    m = pair_tri.shape[0]
+    keep = np.empty(m, dtype=np.bool_)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    xs = np.empty((3, 3), dtype=FLOAT)
+    te = np.empty((6, 3), dtype=FLOAT)
+    se = np.empty((3, 3), dtype=FLOAT)
+    tet_edges = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+    faces = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+    n_keep = 0
+    for p in range(m):
+        for a in range(4):
+            for r in range(3):
+                xt[a, r] = x[tet[pair_tet[p], a], r]
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        for e in range(6):
+            for r in range(3):
+                te[e, r] = xt[tet_edges[e][1], r] - xt[tet_edges[e][0], r]
+        for e in range(3):
+            for r in range(3):
+                se[e, r] = xs[(e + 1) % 3, r] - xs[e, r]
+        separated = False
+        # triangle normal (edges 0 x 1) and face normals (edges of each face)
+        for f in range(5):
+            if f == 0:
+                ax, ay, az = se[0, 0], se[0, 1], se[0, 2]
+                bx, by, bz = se[1, 0], se[1, 1], se[1, 2]
+            else:
+                i0, i1, i2 = faces[f - 1]
+                ax = xt[i1, 0] - xt[i0, 0]
+                ay = xt[i1, 1] - xt[i0, 1]
+                az = xt[i1, 2] - xt[i0, 2]
+                bx = xt[i2, 0] - xt[i0, 0]
+                by = xt[i2, 1] - xt[i0, 1]
+                bz = xt[i2, 2] - xt[i0, 2]
+            nx = ay * bz - az * by
+            ny = az * bx - ax * bz
+            nz = ax * by - ay * bx
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if norm > 0.0 and _axis_gap(xs, xt, nx, ny, nz) > gap * norm:
+                separated = True
+                break
+        if not separated:
+            for e in range(3):
+                for f in range(6):
+                    nx = se[e, 1] * te[f, 2] - se[e, 2] * te[f, 1]
+                    ny = se[e, 2] * te[f, 0] - se[e, 0] * te[f, 2]
+                    nz = se[e, 0] * te[f, 1] - se[e, 1] * te[f, 0]
+                    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+                    if norm > 0.0 and _axis_gap(xs, xt, nx, ny, nz) > gap * norm:
+                        separated = True
+                        break
+                if separated:
+                    break
+        keep[p] = not separated
+        if keep[p]:
+            n_keep += 1
+    out_t = np.empty(n_keep, dtype=pair_tri.dtype)
+    out_k = np.empty(n_keep, dtype=pair_tet.dtype)
+    j = 0
+    for p in range(m):
+        if keep[p]:
+            out_t[j] = pair_tri[p]
+            out_k[j] = pair_tet[p]
+            j += 1
+    return out_t, out_k
+
+
 def intersection_polygon(x_tri: np.ndarray, x_tet: np.ndarray) -> np.ndarray:
     """Intersection of a triangle with a tetrahedron.
 
