@@ -22,6 +22,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
+from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth._checks import check_contact_mesh, check_mesh
 from fenics_matdepth._compat import geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
@@ -163,6 +164,7 @@ def _p1_dof_coordinates(V: dolfinx.fem.FunctionSpace) -> np.ndarray:
     return np.ascontiguousarray(mesh.geometry.x[node_of_dof], dtype=FLOAT)
 
 
+@announces_compilation("the material depth (distance to the boundary)")
 def material_depth(mesh: dolfinx.mesh.Mesh) -> dolfinx.fem.Function:
     """Material depth of every vertex: exact distance to the exterior boundary (collective).
 

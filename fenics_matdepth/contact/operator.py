@@ -29,6 +29,7 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
+from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import (
@@ -100,6 +101,7 @@ class ContactOperator:
     ``A`` must come from :meth:`create_matrix`.
     """
 
+    @announces_compilation("the contact operator (pair search, overlap check)")
     def __init__(
         self,
         u: dolfinx.fem.Function,
@@ -271,6 +273,7 @@ class ContactOperator:
         keep = np.all(self._tets[qk] != self._nodes[qa, None], axis=1)
         return qa[keep], qk[keep]
 
+    @announces_compilation("the pair search")
     def update(self) -> None:
         """Refit the tree to the current ``u`` and find the candidate pairs (collective).
 
@@ -297,6 +300,7 @@ class ContactOperator:
 
     # -- pair contributions ---------------------------------------------------------------
 
+    @announces_compilation("the contact pair integrals")
     def _evaluate(self, want_grad: bool, want_hess: bool) -> dict[str, np.ndarray]:
         want_grad = want_grad or want_hess  # the kernels compute the Hessian with the gradient
         key = f"{want_grad}{want_hess}"
@@ -380,6 +384,7 @@ class ContactOperator:
         sums = np.bincount(inv, weights=vals[keep], minlength=uniq.size)
         return uniq // (3 * self.num_vertices), uniq % (3 * self.num_vertices), sums
 
+    @announces_compilation("the contact Jacobian assembly")
     def add_jacobian(
         self, A: PETSc.Mat, bcs: typing.Sequence[dolfinx.fem.DirichletBC] | None = None
     ) -> None:
@@ -445,6 +450,7 @@ class ContactOperator:
         self._cache["pattern_missing"] = bool(self.comm.allreduce(missing, op=MPI.LOR))
         return self._cache["pattern_missing"]
 
+    @announces_compilation("the contact sparsity pattern")
     def create_matrix(self, a: dolfinx.fem.Form) -> PETSc.Mat:
         """A PETSc matrix holding the bulk form's pattern plus the contact couplings.
 
