@@ -72,7 +72,7 @@ def _concave_corner_claims(output: Path) -> None:
     r = np.asarray(area["residual_norms"])
     assert area["converged"], r
     assert r[-1] <= 1e-10 * r[0], r
-    assert area["iterations"] <= 25, r
+    assert area["iterations"] <= 30, r
     assert area["step_lengths"][-1] == pytest.approx(1.0, abs=1e-6)  # Newton's own steps
 
     r = np.asarray(collocation["residual_norms"])
