@@ -237,7 +237,7 @@ class ContactOperator:
                 f"{n} of the {m} tetrahedra touching the boundary ({n / m:.1%}) have all four "
                 f"vertices on the boundary, hence material depth 0 everywhere; {what}",
                 DepthDeficiencyWarning,
-                stacklevel=3,
+                stacklevel=4,  # _setup_deficient, __init__, the compile-notice wrapper
             )
         if not (split and self.depth_deficiency.deficient):
             return
