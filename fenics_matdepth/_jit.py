@@ -19,6 +19,7 @@ import threading
 import time
 
 from mpi4py import MPI
+
 from numba.core import event as _event
 
 __all__ = ["announces_compilation"]

@@ -22,10 +22,10 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth._checks import check_contact_mesh, check_mesh
 from fenics_matdepth._compat import geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
+from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.geometry.bvh import AABBTree
 
 __all__ = [

@@ -29,9 +29,9 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
+from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.contact.kernels import (
     _accumulate_vertex_blocks,
     _area_pairs_active,
