@@ -394,8 +394,9 @@ def test_plate_one_element_thick_pressed(lower_layers):
     Without the split, the upper plate's tetrahedra all have depth 0, so nothing can push out
     of it: the operator refuses the mesh with an error naming the remedy. With the split
     (default), sunk by p / (2 eps), the plates push back, the solve converges, the contact
-    force balances the load (1e-8), and the overlap is below p / eps: about p / (2 eps) on the block (both surfaces penetrate; the
-    depth gradient is 1 in the plate's top-face sub-tetrahedra and in the block).
+    force balances the load (1e-8), and the overlap is below p / eps: about p / (2 eps) on the
+    block (both surfaces penetrate; the depth gradient is 1 in the plate's top-face
+    sub-tetrahedra and in the block).
     """
     p, eps = PRESSURE, PENALTY
     with pytest.raises(ValueError, match=r"no vertex inside them.*keep split_deficient=True"):
