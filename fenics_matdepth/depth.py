@@ -133,7 +133,10 @@ def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     check_mesh(mesh)
     tdim = mesh.topology.dim
     facets = owned_exterior_facets(mesh)
-    nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets, False)
+    if facets.size:
+        nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets, False)
+    else:  # DOLFINx 0.9 divides by zero (SIGFPE) on a rank without cells
+        nodes = np.empty((0, 3), dtype=np.int32)
     local = np.ascontiguousarray(mesh.geometry.x[np.asarray(nodes).reshape(-1, 3)], dtype=FLOAT)
     local = local.reshape(-1, 9)
     comm = mesh.comm
