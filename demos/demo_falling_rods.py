@@ -69,7 +69,12 @@ import ufl
 from dolfinx import fem, io, plot
 
 import fenics_matdepth as fm
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, write_animation
+from fenics_matdepth.plotting import (
+    gather_vtk_grid,
+    offscreen_pyvista,
+    show_image,
+    write_animation,
+)
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -340,6 +345,8 @@ if comm.rank == 0:
     plt.close(fig)
     if frames:
         write_animation(frames, output / "falling_rods.gif", fps=10)
+        show_image(frames[-1])
+    show_image(output / "falling_rods_energy.png")
 # -
 
 # A summary for the tests and the documentation:

@@ -69,7 +69,12 @@ from dolfinx.mesh import entities_to_geometry
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import interpolation_points
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, write_animation
+from fenics_matdepth.plotting import (
+    gather_vtk_grid,
+    offscreen_pyvista,
+    show_image,
+    write_animation,
+)
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -572,6 +577,8 @@ if comm.rank == 0 and pv is not None and bent is not None:
     plotter.screenshot(output / "knee_fold.png")
     plotter.close()
 
+    for name in ("knee_skin.png", "knee_patella_path.png", "knee_cutaway.png", "knee_fold.png"):
+        show_image(output / name)
     if frames:
         write_animation(frames, output / "knee_flexion.gif", fps=8)
 # -

@@ -76,7 +76,12 @@ from dolfinx import fem, io, plot
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import interpolation_points
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, write_animation
+from fenics_matdepth.plotting import (
+    gather_vtk_grid,
+    offscreen_pyvista,
+    show_image,
+    write_animation,
+)
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -448,6 +453,7 @@ if comm.rank == 0 and frames["opaque"]:
     ]
     write_animation(stacked, output / "snake_apple.gif", fps=4)
     pictures.append("snake_apple.gif")
+    show_image(output / "snake_apple_row.png")
 # -
 
 # A short summary for the tests and the documentation:
