@@ -209,13 +209,14 @@ total_angle = np.radians(total_degrees)
 
 # ### A predictor for each step
 #
-# `ContactProblem.solve` starts Newton from the current `u` with the new Dirichlet values
-# written into it: the tibia jumps by the whole increment while the tissue glued to it stays
-# behind, and a 3° jump inverts the elements next to the tibia before Newton starts (the step is
-# then cut, again and again). So each step starts instead from the last converged state with
-# the increment of rotation spread over the leg: vertices of the shank turn with the tibia, the
-# thigh stays, and across the knee the share of the rotation falls linearly from 1 at the
-# tibial plateau to 0 at the flexion axis. Newton corrects the rest.
+# `ContactProblem` imposes the new Dirichlet values through the first Newton step, so the tibia's
+# 3° increment reaches the tissue glued to it through the linearised step and no element is
+# inverted before Newton starts. Newton still starts far from the answer: the shank has to turn
+# with the tibia. So each step starts from the last converged state with the increment of
+# rotation spread over the leg: vertices of the shank turn with the tibia, the thigh stays, and
+# across the knee the share of the rotation falls linearly from 1 at the tibial plateau to 0 at
+# the flexion axis. Newton corrects the rest. (`MATDEPTH_KNEE_PREDICTOR=0` starts each step from
+# the last converged state instead.)
 
 # +
 X_all = V.tabulate_dof_coordinates()
