@@ -151,6 +151,40 @@ def gmsh_model_to_mesh(model, comm, rank: int = 0, gdim: int = 3):
     return mesh, cell_tags, facet_tags
 
 
+def gmsh_build_to_mesh(build, comm, gdim: int = 3):
+    """Mesh a gmsh model built by ``build`` on rank 0 and distribute it (collective).
+
+    gmsh is initialised if it is not already (and finalised again then), quiet and on one
+    thread (the same mesh on every run); ``build(gmsh.model)`` runs on rank 0 only, and the
+    model is removed afterwards, also when ``build`` raises.
+
+    Args:
+        build: callable taking ``gmsh.model``: adds the geometry, physical groups, sizes and
+            generates the mesh.
+        comm: MPI communicator of the mesh.
+        gdim: geometric dimension.
+
+    Returns:
+        ``(mesh, cell_tags, facet_tags)``.
+    """
+    import gmsh
+
+    initialized_here = not gmsh.isInitialized()
+    if initialized_here:
+        gmsh.initialize()
+    gmsh.option.setNumber("General.Terminal", 0)
+    try:
+        if comm.rank == 0:
+            gmsh.option.setNumber("General.NumThreads", 1)
+            build(gmsh.model)
+        return gmsh_model_to_mesh(gmsh.model, comm, 0, gdim=gdim)
+    finally:
+        if comm.rank == 0:
+            gmsh.model.remove()
+        if initialized_here:
+            gmsh.finalize()
+
+
 def geometry_cmap(mesh):
     """The (single) coordinate element of ``mesh.geometry``.
 

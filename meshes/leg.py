@@ -57,7 +57,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._compat import gmsh_model_to_mesh
+from fenics_matdepth._compat import gmsh_build_to_mesh
 
 __all__ = [
     "BODIES",
@@ -511,21 +511,7 @@ def leg_mesh(
     Returns:
         ``(mesh, cell_tags, facet_tags)`` with the tags of this module.
     """
-    import gmsh
-
-    initialized_here = not gmsh.isInitialized()
-    if initialized_here:
-        gmsh.initialize()
-    gmsh.option.setNumber("General.Terminal", 0)
-    try:
-        if comm.rank == 0:
-            build_leg_model(gmsh.model, geometry, resolution)
-        mesh, cell_tags, facet_tags = gmsh_model_to_mesh(gmsh.model, comm, 0, gdim=3)
-    finally:
-        if comm.rank == 0:
-            gmsh.model.remove()
-        if initialized_here:
-            gmsh.finalize()
+    return gmsh_build_to_mesh(lambda model: build_leg_model(model, geometry, resolution), comm)
     return mesh, cell_tags, facet_tags
 
 

@@ -30,7 +30,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._compat import gmsh_model_to_mesh
+from fenics_matdepth._compat import gmsh_build_to_mesh
 
 __all__ = ["FOUNDATION", "ROD", "RodsGeometry", "build_rods_model", "rods_mesh"]
 
@@ -152,22 +152,7 @@ def rods_mesh(
     Returns:
         ``(mesh, cell_tags)`` with the tags :data:`FOUNDATION` and :data:`ROD`.
     """
-    import gmsh
-
-    initialized_here = not gmsh.isInitialized()
-    if initialized_here:
-        gmsh.initialize()
-    gmsh.option.setNumber("General.Terminal", 0)
-    try:
-        if comm.rank == 0:
-            gmsh.option.setNumber("General.NumThreads", 1)  # the same mesh on every run
-            build_rods_model(gmsh.model, geometry)
-        mesh, cell_tags, _ = gmsh_model_to_mesh(gmsh.model, comm, 0, gdim=3)
-    finally:
-        if comm.rank == 0:
-            gmsh.model.remove()
-        if initialized_here:
-            gmsh.finalize()
+    mesh, cell_tags, _ = gmsh_build_to_mesh(lambda model: build_rods_model(model, geometry), comm)
     x = mesh.geometry.x
     x[:] = x @ geometry.rotation().T
     return mesh, cell_tags
