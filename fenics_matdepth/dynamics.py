@@ -189,7 +189,7 @@ class _Integrator:
             Psi: the static energy functional (strain energy minus the potential of conservative
                 loads), a UFL form of ``u``; None for inertia alone.
             rho: density; default the integrator's.
-            damping: the mass-proportional damping coefficient of :meth:`inertia`: adds
+            damping: the mass-proportional damping coefficient of ``inertia()``: adds
                 ``int c rho |velocity|^2 / (2 s) dx``, ``s = d velocity / du`` (Newmark
                 ``gamma / (beta dt)``, backward Euler ``1 / dt``), whose derivative is the
                 viscous force.
@@ -331,7 +331,7 @@ class _Integrator:
 
     def trial_kinetic_energy(self) -> float:
         """``int rho |velocity(u)|^2 / 2 dx`` of the current ``u`` taken as the new step, before
-        :meth:`advance` (collective; F L)."""
+        ``advance()`` (collective; F L)."""
         return self._scalar(
             "trial_kinetic",
             lambda: 0.5 * self._density() * ufl.inner(self.velocity, self.velocity) * self.dx,
@@ -372,13 +372,15 @@ class Newmark(_Integrator):
         u: the unknown displacement of the new step (any vector Function).
         dt: the time step (T).
         beta, gamma: Newmark's parameters (``beta > 0``: the method is implicit).
-        rho: density (mass / L^3), needed for :meth:`incremental_energy`, :meth:`inertia`,
+        rho: density (mass / L^3), needed for ``incremental_energy()``, ``inertia()``,
             the energies and momenta, and a consistent initial acceleration.
         dx: the integration measure of the inertia terms; default ``ufl.dx`` on u's mesh.
 
     Attributes:
-        u_prev, v_prev, a_prev: the last converged displacement, velocity and acceleration
-            (Functions); after :meth:`advance` they hold the new step.
+        u_prev: the last converged displacement (Function); after ``advance()``, the new
+            step's.
+        v_prev: the last converged velocity (Function).
+        a_prev: the last converged acceleration (Function).
     """
 
     def __init__(
@@ -472,8 +474,11 @@ class TimeStep:
         residual_norms: its residual history.
         cuts: failed or rejected attempts (dt halvings) before this step converged.
         diagnostics: ``contact.diagnostics()`` after the step (empty without contact).
-        kinetic_energy, strain_energy, contact_energy, external_work: energies (F L); NaN when
-            not computable (no density, no form given).
+        kinetic_energy: kinetic energy (F L).
+        strain_energy: strain energy (F L).
+        contact_energy: contact energy (F L).
+        external_work: work of the external loads (F L). Each energy is NaN when it cannot be
+            computed (no density, no form given).
         seconds: wall time of the step, failed attempts included.
     """
 
@@ -593,7 +598,7 @@ def solve_time_steps(
             notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
 
     Returns:
-        The history: the initial state (step 0) and every converged step, in time order.
+        The initial state (step 0) and every converged step, in time order.
 
     Raises:
         RuntimeError: if dt falls below ``min_dt`` on failures; ``u`` and the integrator then

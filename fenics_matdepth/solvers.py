@@ -189,9 +189,9 @@ class ContactAssembler:
         """Assemble the residual at ``x`` (state already set) into ``b`` (collective).
 
         Returns:
-            False if the state is inadmissible: some element has det F <= 0 or the residual is
-            not finite; ``b`` is then filled with NaN, which makes PETSc's backtracking line
-            search shorten the step.
+            Whether the state is admissible. It is not when some element has det F <= 0 or
+            the residual is not finite; ``b`` is then filled with NaN, which makes PETSc's
+            backtracking line search shorten the step.
         """
         if self.min_det_F() <= 0.0:
             b.set(np.nan)
@@ -795,8 +795,8 @@ def solve_load_steps(
             the last converged increment scaled to the new load increment (linear
             extrapolation, as FEBio and Abaqus do), unless that would invert an element;
             ``"none"`` (default): start from the last converged displacement.
-        checkpoint: save each converged step to this file (:class:`fenics_matdepth.checkpoint.
-            Checkpoint` format; ``.npz``), replacing the previous one.
+        checkpoint: save each converged step to this file (the format of
+            :class:`~fenics_matdepth.checkpoint.Checkpoint`; ``.npz``), replacing the previous one.
         resume: continue from the last step saved in this checkpoint file (written by a run
             with the same ``start``, ``end``, ``num_steps`` and mesh); the returned list holds
             the steps of this call only.
