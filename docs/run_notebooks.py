@@ -51,7 +51,9 @@ def main(names: list[str]) -> int:
         }  # fmt: skip
         client = nbclient.NotebookClient(
             notebook, timeout=TIMEOUT, kernel_name="python3",
-            resources={"metadata": {"path": str(OUT)}},
+            # run where the script lives, as a user opening it there would: the demos find
+            # meshes/ next to their folder
+            resources={"metadata": {"path": str(REPO / "demos")}},
         )  # fmt: skip
         try:
             client.execute()
