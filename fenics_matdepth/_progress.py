@@ -14,10 +14,16 @@ import sys
 __all__ = ["StepProgress"]
 
 
-def _interactive() -> bool:
-    """Whether a person is watching: a notebook kernel, or standard output on a terminal."""
+def _interactive(comm) -> bool:
+    """Whether a person is watching: a notebook kernel, or standard output on a terminal.
+
+    Under MPI (more than one rank) the answer is no: mpirun hands its ranks a pseudo-terminal,
+    so standard output looks like a terminal even when the job's output goes to a log file.
+    """
     if os.environ.get("MATDEPTH_PROGRESS") in ("bar", "lines"):
         return os.environ["MATDEPTH_PROGRESS"] == "bar"
+    if comm.size > 1:
+        return False
     try:
         from IPython import get_ipython
 
@@ -45,7 +51,7 @@ class StepProgress:
         self._on = enabled and comm.rank == 0
         self._start, self._span = float(start), float(end) - float(start)
         self._bar = None
-        if self._on and _interactive():
+        if self._on and _interactive(comm):
             try:
                 from tqdm.auto import tqdm
             except ImportError:

@@ -42,6 +42,20 @@ def test_bar_advances_to_the_reached_fraction(monkeypatch):
     assert not progress.uses_bar
 
 
+def test_lines_under_mpi_even_on_a_terminal(monkeypatch):
+    """mpirun gives its ranks a pseudo-terminal; a run on several ranks prints lines (a bar in
+    a log file is unreadable); serially, a terminal gets the bar."""
+    pytest.importorskip("tqdm")
+    monkeypatch.delenv("MATDEPTH_PROGRESS", raising=False)
+    monkeypatch.setattr("sys.stdout.isatty", lambda: True, raising=False)
+    progress = StepProgress(MPI.COMM_WORLD, 0.0, 1.0, "load")
+    if progress.uses_bar:
+        progress._bar.fp = io.StringIO()
+    expected = MPI.COMM_WORLD.size == 1 and MPI.COMM_WORLD.rank == 0
+    assert progress.uses_bar == expected
+    progress.close()
+
+
 def test_silent_when_disabled(capsys):
     progress = StepProgress(MPI.COMM_WORLD, 0.0, 1.0, "load", enabled=False)
     progress.step(1.0, "never shown")
