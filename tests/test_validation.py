@@ -269,7 +269,7 @@ PATCH_LOWER_N, PATCH_UPPER_N = 8, 7
 PATCH_YOUNGS, PATCH_POISSON, PATCH_PRESSURE = 1.0, 0.3, 0.01
 
 
-def _solve_patch(penalty: float, split_deficient: bool = True) -> dict:
+def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-8) -> dict:
     """Uniform dead pressure on the upper cube's top face; returns interior measurements.
 
     Rollers: u_z = 0 on the lower cube's bottom, u_x = 0 on x = 0 and u_y = 0 on y = 0 (both
@@ -325,8 +325,9 @@ def _solve_patch(penalty: float, split_deficient: bool = True) -> dict:
         u, fm.material_depth(mesh), penalty=penalty, split_deficient=split_deficient
     )
     problem = fm.ContactProblem(
-        residual, u, contact, bcs=bcs, energy=energy, petsc_options=NEWTON_OPTIONS
-    )
+        residual, u, contact, bcs=bcs, energy=energy,
+        petsc_options={**NEWTON_OPTIONS, "snes_rtol": rtol},
+    )  # fmt: skip
     result = problem.solve()
     assert result.converged
 
@@ -396,7 +397,10 @@ def test_patch_uniform_pressure():
     # vertices on the boundary: split around their centroid they get depth, and with this stiff
     # penalty Newton then stalls near 3e-7 of the initial residual instead of reaching 1e-8.
     # Without the split they have depth 0 and the incidence costs nothing.
-    out = _solve_patch(penalty, split_deficient=False)
+    # The residual's round-off floor at this penalty is near 1e-6 of the initial residual:
+    # DOLFINx 0.9 (trixie) reaches 1e-8, DOLFINx 0.11 (sid) stalled at 8e-7 (absolute 1.6e-9,
+    # the line search finding no decrease). The assertions below are on the pressures.
+    out = _solve_patch(penalty, split_deficient=False, rtol=1e-6)
     p = PATCH_PRESSURE
     inner = out["interior_pressure"]
     stretch = out["stretch_z"] ** 2 / out["stretch_x"] ** 2
