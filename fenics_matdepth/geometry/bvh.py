@@ -465,6 +465,20 @@ def _nearest_triangle(points, x, order, cells_sorted, node_start, node_count, no
 
 
 @njit(cache=True)
+def _kept_pairs(pair_tri, pair_tet, keep, n_keep):
+    """The pairs whose ``keep`` flag is set (``n_keep`` of them), in their order."""
+    out_t = np.empty(n_keep, dtype=pair_tri.dtype)
+    out_k = np.empty(n_keep, dtype=pair_tet.dtype)
+    j = 0
+    for p in range(keep.size):
+        if keep[p]:
+            out_t[j] = pair_tri[p]
+            out_k[j] = pair_tet[p]
+            j += 1
+    return out_t, out_k
+
+
+@njit(cache=True)
 def _exclude_shared_vertex_pairs(tri_cells, tet_cells, pair_tri, pair_tet):
     """Keep the (triangle, tetrahedron) pairs that share no vertex.
 
@@ -491,15 +505,7 @@ def _exclude_shared_vertex_pairs(tri_cells, tet_cells, pair_tri, pair_tet):
         keep[p] = not shared
         if not shared:
             n_keep += 1
-    out_t = np.empty(n_keep, dtype=pair_tri.dtype)
-    out_k = np.empty(n_keep, dtype=pair_tet.dtype)
-    j = 0
-    for p in range(m):
-        if keep[p]:
-            out_t[j] = pair_tri[p]
-            out_k[j] = pair_tet[p]
-            j += 1
-    return out_t, out_k
+    return _kept_pairs(pair_tri, pair_tet, keep, n_keep)
 
 
 # ------------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from fenics_matdepth._constants import FLOAT
+from fenics_matdepth.geometry.bvh import _kept_pairs
 
 __all__ = [
     "CLIP_TOL",
@@ -455,15 +456,7 @@ def _near_pairs(x, tri, tet, pair_tri, pair_tet, gap):
         keep[p] = not separated
         if keep[p]:
             n_keep += 1
-    out_t = np.empty(n_keep, dtype=pair_tri.dtype)
-    out_k = np.empty(n_keep, dtype=pair_tet.dtype)
-    j = 0
-    for p in range(m):
-        if keep[p]:
-            out_t[j] = pair_tri[p]
-            out_k[j] = pair_tet[p]
-            j += 1
-    return out_t, out_k
+    return _kept_pairs(pair_tri, pair_tet, keep, n_keep)
 
 
 def intersection_polygon(x_tri: np.ndarray, x_tet: np.ndarray) -> np.ndarray:
