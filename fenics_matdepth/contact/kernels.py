@@ -225,7 +225,9 @@ def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
                 hphi[4 * i2 + lb - 3, 4 * i + la - 3] += val
 
 
-@njit(inline="always")
+# not inlined into `_area_pair` either: it runs once per pair when the Hessian is wanted, and
+# compiling it on its own shortens the first run's compilation further
+@njit(cache=True)
 def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi):
     """``hphi += J^T B J + sum_k w_k . d2 mu_k``: the Hessian blocks over (mu_0.., G) pulled
     back to Lam through the sparse vertex Jacobians (at most 6 live columns each) and
@@ -276,7 +278,10 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
                     hphi[4 * i + j, 4 * i2 + j2] += bg * dt[j] * dt[j2]
 
 
-@njit(inline="always")
+# A function of its own, called from the pair loops, not inlined there (inline="always"):
+# numba's IR inlining of this large kernel made the first run's compilation about three
+# times longer, for no measurable gain in speed (docs/solvers.md, start-up).
+@njit(cache=True)
 def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
@@ -738,7 +743,6 @@ def _area_pairs_core(
         # the sums of theirs, mapped back to the parent's vertices
         for s in range(4 if split else 1):
             _gather_tet(x, depth, tet, k, s, split, xt, dt)
-            # a single call site: the kernel is inlined, a second call would double compile time
             es = _area_pair(xs, xt, dt, penalty, wg, wh, work, grad, hess, out_row)
             if not split:
                 e = es
@@ -927,7 +931,7 @@ def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
     return out
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess, p):
     """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).
 
