@@ -319,7 +319,8 @@ class ContactProblem:
     Attributes:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
             ``contact_update`` (gather, refit, pair search), ``contact_assembly`` (pair kernels
-            and insertion) and ``linear_solve``.
+            and insertion) and ``linear_solve`` (factorisation or preconditioner set-up, and
+            the solve).
         assembler: the :class:`ContactAssembler` (residual, Jacobian, matrix).
     """
 
@@ -714,6 +715,9 @@ class LoadStep:
             det F over the cells) and ``rejected_states`` (inadmissible trial states the solve
             rejected).
         seconds: wall time of the step, failed attempts included.
+        timings: the converged solve's time split (``problem.timings``: ``bulk_assembly``,
+            ``contact_update``, ``contact_assembly``, ``linear_solve``; seconds), empty for a
+            problem that keeps none.
     """
 
     load: float
@@ -722,6 +726,7 @@ class LoadStep:
     cuts: int
     diagnostics: dict
     seconds: float
+    timings: dict = dataclasses.field(default_factory=dict)
 
 
 class _Solvable(typing.Protocol):
@@ -884,8 +889,9 @@ def solve_load_steps(
             diag["min_det_F"] = cells.min(u)
             diag["rejected_states"] = result.rejected_states
             step = LoadStep(
-                t, result.iterations, result.residual_norms, cuts, diag, time.perf_counter() - tic
-            )
+                t, result.iterations, result.residual_norms, cuts, diag,
+                time.perf_counter() - tic, dict(getattr(problem, "timings", {})),
+            )  # fmt: skip
             steps.append(step)
             _collective_call(
                 comm, f"writer at load {t:.6g}",

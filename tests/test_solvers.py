@@ -8,6 +8,7 @@ import warnings
 from pathlib import Path
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import dolfinx
 import numpy as np
@@ -78,6 +79,23 @@ def test_block_pressed_on_block_converges_quadratically():
     assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
 
 
+def test_linear_solve_time_includes_the_factorisation():
+    """The reported linear-solve time covers the factorisation (PETSc's PCSetUp event, which
+    its KSPSolve event leaves out) as well as the solve."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    PETSc.Log.begin()
+    events = [PETSc.Log.Event(name) for name in ("PCSetUp", "KSPSolve")]
+    before = sum(event.getPerfInfo()["time"] for event in events)
+    problem.solve()
+    logged = sum(event.getPerfInfo()["time"] for event in events) - before
+    assert logged > 0.0
+    assert problem.timings["linear_solve"] >= logged, (problem.timings, logged)
+
+
 def test_residual_of_the_accepted_step_is_reused_and_exact():
     """Once the line search judges steps by |F|^2 / 2, SNES's residual at an accepted step is
     the one the line search assembled (not assembled again), and it is the residual there: the
@@ -134,6 +152,14 @@ def test_pattern_rebuilt_when_contact_appears(solver):
     A = problem._A if solver == "snes" else problem.matrix
     assert A.getInfo()["mallocs"] == 0
     _assert_quadratic(steps[-1].residual_norms)
+    # each step keeps its own solve's time split (problem.timings holds the last one only)
+    if solver == "snes":
+        assert steps[-1].timings == problem.timings
+        for step in steps:
+            assert set(step.timings) == set(fm.solvers.TIMING_KEYS)
+            assert 0.0 < sum(step.timings.values()) <= step.seconds, step
+    else:
+        assert all(step.timings == {} for step in steps)
 
 
 def test_newton_solver_problem_matches_snes():
