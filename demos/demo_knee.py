@@ -46,7 +46,8 @@
 # `MATDEPTH_DEMO_QUICK=1` runs the coarse leg for two steps (for the test suite);
 # `MATDEPTH_KNEE_RESOLUTION` (`coarse`, `default`, `fine` or a number), `MATDEPTH_KNEE_DEGREES`
 # and `MATDEPTH_KNEE_STEPS` override the resolution, the total flexion and the number of steps,
-# `MATDEPTH_KNEE_PREDICTOR=0` turns the step predictor off (below);
+# `MATDEPTH_KNEE_PREDICTOR=0` turns the step predictor off (below),
+# `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
@@ -99,6 +100,7 @@ else:
     output = here / "output"
 if comm.rank == 0:
     output.mkdir(parents=True, exist_ok=True)
+    (output / "knee_stop").unlink(missing_ok=True)  # a stop request of an earlier run
 comm.barrier()
 
 
@@ -494,7 +496,9 @@ def add_frame(grid) -> None:
 # the VTX files and renders an animation frame; `solve_load_steps` then saves the step to the
 # checkpoint. The measurements so far are kept in `knee_steps.json` next to it, so that a
 # resumed run (`--resume`) reports the whole history; its VTX file and animation start at the
-# resumed angle (`knee_from_<degrees>.bp`).
+# resumed angle (`knee_from_<degrees>.bp`). Creating a file `knee_stop` in the output folder
+# stops the flexion at the last converged step; the demo then goes on to the pictures and the
+# summary of that state.
 
 # +
 checkpoint = output / "knee_checkpoint.npz"
@@ -524,6 +528,8 @@ vtx.write(start_degrees)
 
 
 def counting_set_flexion(t: float) -> None:
+    if (output / "knee_stop").exists():
+        raise RuntimeError(f"stopped at {np.degrees(last['angle']):.1f} deg by {output}/knee_stop")
     attempts["count"] += 1
     set_flexion(t)
 
