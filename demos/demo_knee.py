@@ -46,8 +46,12 @@
 # `MATDEPTH_DEMO_QUICK=1` runs the coarse leg for two steps (for the test suite);
 # `MATDEPTH_KNEE_RESOLUTION` (`coarse`, `default`, `fine` or a number), `MATDEPTH_KNEE_DEGREES`
 # and `MATDEPTH_KNEE_STEPS` override the resolution, the total flexion and the number of steps,
-# `MATDEPTH_KNEE_PREDICTOR=0` turns the step predictor off (below);
-# `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`).
+# `MATDEPTH_KNEE_PREDICTOR=0` turns the step predictor off (below),
+# `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50);
+# `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
+# is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
+# `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
+# same resolution, flexion and number of steps.
 
 # +
 from __future__ import annotations
@@ -62,6 +66,7 @@ from pathlib import Path
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import dolfinx
 import numpy as np
 import ufl
 from dolfinx import fem, io, plot
@@ -83,6 +88,8 @@ resolution = os.environ.get("MATDEPTH_KNEE_RESOLUTION", "coarse" if quick else "
 total_degrees = float(os.environ.get("MATDEPTH_KNEE_DEGREES", 6.0 if quick else 150.0))
 num_steps = int(os.environ.get("MATDEPTH_KNEE_STEPS", 2 if quick else 50))
 use_predictor = os.environ.get("MATDEPTH_KNEE_PREDICTOR", "1") not in ("", "0")
+bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
+resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
 except NameError:  # in a notebook
@@ -93,6 +100,7 @@ else:
     output = here / "output"
 if comm.rank == 0:
     output.mkdir(parents=True, exist_ok=True)
+    (output / "knee_stop").unlink(missing_ok=True)  # a stop request of an earlier run
 comm.barrier()
 
 
@@ -111,6 +119,31 @@ spec.loader.exec_module(leg)
 #
 # Units: millimetres, megapascals (N/mm²), newtons. The flexion axis is the $x$ axis through
 # the centres of the femoral condyles; $y$ points forwards, $z$ upwards.
+#
+# Where the leg's shape comes from a measured failure. An earlier version of the leg reached
+# only 43.5° (min det F 0.15). Rendering det F cell by cell showed what crushed the tissue,
+# one thing after another as each was removed:
+#
+# - *a ledge on the femur*: the femoral shaft, a straight cylinder down to the condyles, stood
+#   7 mm proud of the trochlear groove; the tissue under its flat end was crushed by the
+#   descending patella and the pull of the ligament (det F 0.61 after the first 3°, 0.30 at
+#   12°). A real anterior cortex runs into the trochlea without a step, so the shaft's lowest
+#   24 mm now sweep back into the condyles (`metaphysis_offset`, `metaphysis_height`);
+# - *soft tissue between patella and femur*: the patella sat 4 mm off the femur with a 2 mm
+#   layer of tissue glued to its back, which carried the patellofemoral pressure (det F 0.58
+#   at 21°). In a real knee cartilage meets cartilage there; the patella now sits 1.5 mm off
+#   the femur, across the joint space (`patellofemoral_space`);
+# - *bulk behind the knee*: a real knee has the popliteal fossa, a hollow between the
+#   hamstrings and the heads of gastrocnemius into which the skin folds as the knee bends.
+#   The back of the leg is now hollowed there (`fossa_depth` 14 mm, `fossa_radius` 40 mm) and
+#   the popliteal crease cuts 10 mm deeper at its floor;
+# - *the plateau's rim*: the tibial plateau sits 1.5 mm further forward (`plateau_offset`),
+#   which keeps its posterior rim, swinging up behind the condyles about the fixed axis, a
+#   little further from the femoral shaft at full flexion;
+# - *slivers*: the lowest det F sat in single flat tetrahedra (a tetrahedron whose vertices are
+#   nearly coplanar changes its volume by a large fraction for a small motion). The mesh is
+#   optimised harder (`Mesh.OptimizeThreshold` 0.45, three passes, then vertex relocation):
+#   tetrahedra of quality below 0.05 went from 270 to about 100 on the coarse leg.
 
 # +
 geometry = leg.LegGeometry()
@@ -132,9 +165,14 @@ depth.name = "material_depth"
 # ### Materials
 #
 # Moduli in MPa. Soft-tissue figures are small-strain shear moduli of the orders reported for
-# passive tissue; the bulk moduli are ten times the shear moduli (Poisson's ratio 0.45: nearly
-# incompressible, but compressible enough that the fold behind the knee can be squeezed with a
-# first-order mesh, the paper's "highly compressed" skin-fat layer).
+# passive tissue. Their bulk moduli are fifty times the shear moduli (Poisson's ratio 0.49,
+# `MATDEPTH_KNEE_BULK_RATIO` changes the factor): tissue is mostly water, and nearly
+# incompressible. An earlier choice of ten times (Poisson's ratio 0.45) made the tissue a
+# sponge: the pressure the joint puts on it (0.05 to 0.1 MPa next to the patella and on the
+# tibial plateau's rim) is a sizeable fraction of a bulk modulus of 0.15 MPa, so the tissue
+# there lost a third of its volume in the first 20° instead of flowing aside (measured: det F
+# fell by 0.06 per 3° step on the plateau's rim with ten times, by 0.035 with fifty). Fifty is
+# still far from water's ratio (about 1e5); with first-order tetrahedra a larger one locks.
 #
 # - femur, tibia: neo-Hookean, mu = 40, kappa = 90 (E about 100). Both are prescribed entirely
 #   (fixed, rotated), so the values do not matter.
@@ -142,9 +180,9 @@ depth.name = "material_depth"
 #   than the tissue around it, rigid in effect; real bone (E about 1e4) only worsens the
 #   conditioning.
 # - quadriceps, thigh and calf soft tissue: Mooney-Rivlin, c10 = 5e-3, c01 = 2.5e-3
-#   (mu = 15 kPa), kappa = 0.15: passive skeletal muscle, mu of 5 to 20 kPa in indentation and
+#   (mu = 15 kPa), kappa = 0.75: passive skeletal muscle, mu of 5 to 20 kPa in indentation and
 #   elastography.
-# - skin-fat layer: Veronda-Westmann, c1 = 2.5e-3, c2 = 4 (mu = 10 kPa), kappa = 0.1:
+# - skin-fat layer: Veronda-Westmann, c1 = 2.5e-3, c2 = 4 (mu = 10 kPa), kappa = 0.5:
 #   dominated by subcutaneous fat (mu of a few kPa), stiffening at large stretch (the dermis).
 # - quadriceps tendon, patellar ligament: fibre-reinforced, matrix mu = 0.5, kappa = 5, fibres
 #   k1 = 100 (fibre modulus 4 k1 = 400 MPa) along the tendon's axis: tendon has a modulus of
@@ -155,8 +193,8 @@ depth.name = "material_depth"
 
 # +
 bone = {"mu": 40.0, "kappa": 90.0}
-muscle = {"c10": 5e-3, "c01": 2.5e-3, "kappa": 0.15}
-skin_fat = {"c1": 2.5e-3, "c2": 4.0, "kappa": 0.1}
+muscle = {"c10": 5e-3, "c01": 2.5e-3, "kappa": 0.015 * bulk_ratio}
+skin_fat = {"c1": 2.5e-3, "c2": 4.0, "kappa": 0.01 * bulk_ratio}
 tendon = {"mu": 0.5, "kappa": 5.0, "k1": 100.0}
 
 u = fem.Function(V, name="displacement")
@@ -182,7 +220,6 @@ psi = {
 }
 dx = ufl.Measure("dx", domain=domain, subdomain_data=cell_tags)
 energy = sum(density * dx(tag) for tag, density in psi.items())
-residual = ufl.derivative(energy, u, ufl.TestFunction(V))
 # -
 
 # ### Boundary conditions
@@ -191,13 +228,45 @@ residual = ufl.derivative(energy, u, ufl.TestFunction(V))
 # the flexion axis (the $-x$ axis: the foot moves backwards); the thigh's proximal cut plane
 # $z = $ `thigh_length` may only move in its plane: its $z$ component is zero, a Dirichlet
 # condition on the sub-space `V.sub(2)`.
+#
+# Except for the quadriceps. It does not end at the cut: it runs on for another 25 cm or so to
+# the hip and the proximal femur, and in passive flexion the whole muscle lengthens as the
+# patella is pulled 5-8 cm down over the femur. Pinned at the cut, the 2 cm of muscle between
+# the cut and the tendon's end would have to take that whole excursion (several hundred per cent
+# of strain, crushing the muscle beside the stiff tendon's end: the lowest det F of the leg
+# after 10° in an earlier run). So the quadriceps' share of the cut carries the muscle left out
+# instead: a spring of stiffness $k = E / L_0$ per unit area on the $z$ displacement, with
+# $E = 3\mu = 45$ kPa the muscle's small-strain modulus and $L_0 = 250$ mm the omitted length,
+# energy $\frac{k}{2}\int u_z^2\,\mathrm{d}A$ over that part of the cut.
 
 # +
 tdim = domain.topology.dim
+fdim = tdim - 1
+domain.topology.create_connectivity(fdim, tdim)
+cell_tag_of = np.zeros(
+    domain.topology.index_map(tdim).size_local + domain.topology.index_map(tdim).num_ghosts,
+    dtype=np.int32,
+)
+cell_tag_of[cell_tags.indices] = cell_tags.values
+cut_facets = facet_tags.find(leg.PROXIMAL_CUT)
+f2c = domain.topology.connectivity(fdim, tdim)
+on_quadriceps = np.array(
+    [cell_tag_of[f2c.links(f)[0]] == leg.QUADRICEPS for f in cut_facets], dtype=bool
+)
+QUADRICEPS_CUT = 1
+quadriceps_cut = dolfinx.mesh.meshtags(
+    domain, fdim, cut_facets[on_quadriceps], np.full(on_quadriceps.sum(), QUADRICEPS_CUT, np.int32)
+)
+ds = ufl.Measure("ds", domain=domain, subdomain_data=quadriceps_cut)
+omitted_muscle = 250.0  # mm
+spring = 3.0 * 2.0 * (muscle["c10"] + muscle["c01"]) / omitted_muscle  # MPa/mm
+energy = energy + 0.5 * spring * u[2] ** 2 * ds(QUADRICEPS_CUT)
+residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+
 domain.topology.create_connectivity(tdim, tdim)
 femur_dofs = fem.locate_dofs_topological(V, tdim, cell_tags.find(leg.FEMUR))
 tibia_dofs = fem.locate_dofs_topological(V, tdim, cell_tags.find(leg.TIBIA))
-cut_dofs = fem.locate_dofs_topological(V.sub(2), tdim - 1, facet_tags.find(leg.PROXIMAL_CUT))
+cut_dofs = fem.locate_dofs_topological(V.sub(2), fdim, cut_facets[~on_quadriceps])
 tibia_rotation = fm.RigidRotation(V, center=(0.0, 0.0, 0.0), axis=(-1.0, 0.0, 0.0))
 bcs = [
     fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), femur_dofs, V),
@@ -424,19 +493,45 @@ def add_frame(grid) -> None:
 #
 # 50 steps of 3°; a step that fails is retried from the last converged state with half the
 # increment (`solve_load_steps`). After each converged step the writer hook measures, writes
-# the VTX files and renders an animation frame.
+# the VTX files and renders an animation frame; `solve_load_steps` then saves the step to the
+# checkpoint. The measurements so far are kept in `knee_steps.json` next to it, so that a
+# resumed run (`--resume`) reports the whole history; its VTX file and animation start at the
+# resumed angle (`knee_from_<degrees>.bp`). Creating a file `knee_stop` in the output folder
+# stops the flexion at the last converged step; the demo then goes on to the pictures and the
+# summary of that state.
 
 # +
+checkpoint = output / "knee_checkpoint.npz"
+steps_file = output / "knee_steps.json"
 per_step: list[dict] = []
 frames_angles: list[float] = []
+attempts = {"count": 0, "tic": time.perf_counter()}
+if resume:
+    arrays, meta = fm.Checkpoint(checkpoint, V).load()
+    # the predictor starts from the saved state: set_flexion at the saved angle returns it
+    last["u"], last["angle"] = arrays["u"], meta["load"] * total_angle
+    u.x.array[:] = arrays["u"]
+    per_step = json.loads(steps_file.read_text()) if comm.rank == 0 else None
+    per_step = [m for m in comm.bcast(per_step, root=0) if m["load"] <= meta["load"] + 1e-12]
+    attempts["count"] = -1  # solve_load_steps sets the saved load once before the first step
+    report(f"resuming from {np.degrees(meta['load'] * total_angle):.1f} deg ({checkpoint})")
 timing_totals = dict.fromkeys(fm.solvers.TIMING_KEYS, 0.0)
 body_field = fem.Function(Q, name="body")
 body_field.x.array[Q.dofmap.list[:, 0]] = cell_body
 body_field.x.scatter_forward()
 with io.VTXWriter(comm, output / "knee_tags.bp", [body_field]) as tags_file:
     tags_file.write(0.0)
-vtx = io.VTXWriter(comm, output / "knee.bp", [u, depth])
-vtx.write(0.0)
+start_degrees = per_step[-1]["degrees"] if per_step else 0.0
+vtx_name = f"knee_from_{start_degrees:.0f}.bp" if per_step else "knee.bp"
+vtx = io.VTXWriter(comm, output / vtx_name, [u, depth])
+vtx.write(start_degrees)
+
+
+def counting_set_flexion(t: float) -> None:
+    if (output / "knee_stop").exists():
+        raise RuntimeError(f"stopped at {np.degrees(last['angle']):.1f} deg by {output}/knee_stop")
+    attempts["count"] += 1
+    set_flexion(t)
 
 
 def after_step(t: float) -> None:
@@ -444,7 +539,14 @@ def after_step(t: float) -> None:
     for key, value in problem.timings.items():
         timing_totals[key] += value
     m = measure(t)
+    m["load"] = t
+    m["newton_iterations"] = int(problem.snes.getIterationNumber())
+    m["cuts"] = attempts["count"] - 1
+    m["seconds"] = time.perf_counter() - attempts["tic"]
+    attempts["count"], attempts["tic"] = 0, time.perf_counter()
     per_step.append(m)
+    if comm.rank == 0:
+        steps_file.write_text(json.dumps(per_step))
     vtx.write(m["degrees"])
     frames_angles.append(m["degrees"])
     grid = gathered_grid()
@@ -470,10 +572,16 @@ report(
 tic = time.perf_counter()
 failure = None
 try:
-    steps = fm.solve_load_steps(problem, set_flexion, num_steps, writer=after_step)
+    fm.solve_load_steps(
+        problem,
+        counting_set_flexion,
+        num_steps,
+        writer=after_step,
+        checkpoint=checkpoint,
+        resume=checkpoint if resume else None,
+    )
 except RuntimeError as err:  # the history stops at the last converged step: report it
     failure = str(err)
-    steps = None
 solve_seconds = time.perf_counter() - tic
 vtx.close()
 reached = per_step[-1]["degrees"] if per_step else 0.0
@@ -589,7 +697,7 @@ if comm.rank == 0 and pv is not None and bent is not None:
 # Iterations, cuts and the per-step measurements, for the tests and the documentation.
 
 # +
-iterations = [s.iterations for s in steps] if steps is not None else []
+iterations = [m["newton_iterations"] for m in per_step]
 summary = {
     "quick": quick,
     "resolution": resolution,
@@ -601,14 +709,14 @@ summary = {
     "reached_degrees": reached,
     "completed": failure is None,
     "failure": failure,
+    "resumed": resume,
     "steps": per_step,
+    "iterations": iterations,
+    "cuts": [m["cuts"] for m in per_step],
     "solve_seconds": solve_seconds,
     "time_split": split,
     "seconds": time.perf_counter() - start,
 }
-if steps is not None:
-    summary["iterations"] = iterations
-    summary["cuts"] = [s.cuts for s in steps]
 if comm.rank == 0:
     (output / "knee.json").write_text(json.dumps(summary, indent=1))
     print(f"pictures and results in {output}")

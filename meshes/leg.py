@@ -30,8 +30,10 @@ muscle-skin, thigh tissue on the femur shaft, calf on the tibia) are shared surf
 conforming mesh (gmsh ``fragment``). Sliding interfaces are *not* shared: a gap of ``gap``
 separates the distal femur from everything around it (the patella, the quadriceps, the thigh
 soft tissue), and the tibial plateau from the condyles (the joint space, a cavity bounded by
-the condyles, the plateau and the soft tissue around them). Behind the knee a crease (the
-popliteal crease: a slot of width ``2 * crease_half_width``, lined with skin) cuts into the
+the condyles, the plateau and the soft tissue around them). Behind the knee the popliteal
+fossa is a hollow (a cylinder along ``x`` cut out of the back of the leg, lined with skin), and
+at its floor a crease (the popliteal crease: a slot of width ``2 * crease_half_width``, lined
+with skin) cuts into the
 back of the leg: where the skin folds onto itself when the knee bends.
 
 Facet tags: :data:`PROXIMAL_CUT` (the thigh's cut plane ``z = thigh_length``) and
@@ -114,6 +116,13 @@ class LegGeometry:
         femur_shaft_radius: radius of the femoral shaft.
         femur_shaft_offset: anterior offset ``y`` of the shaft's axis (the condyles bulge
             backwards, as the posterior condylar offset of a real femur).
+        metaphysis_offset: ``y`` of the shaft's axis where it meets the condyles (``z = 0``).
+            Between ``z = 0`` and ``z = metaphysis_height`` the shaft's axis sweeps forwards
+            from here to ``femur_shaft_offset`` (a sheared cylinder), so that the anterior
+            cortex runs into the trochlea without a step: a shaft kept straight down to the
+            condyles stands 7 mm proud of the trochlear groove, a ledge under which the tissue
+            below the patella is crushed as the patella slides down.
+        metaphysis_height: height of that transition.
         condyle_radius: radius of the two spherical condyles, centred on the flexion axis.
         condyle_half_distance: ``x`` of the condyle centres (the notch and the trochlear groove
             are the saddle between them).
@@ -133,14 +142,23 @@ class LegGeometry:
         tuberosity_radius: radius of the tibial tuberosity (a ball on the anterior tibia).
         patella_semi_axes: ``(x, y, z)`` semi-axes of the patella (a thick lens).
         patella_height: ``z`` of the patella's centre with the knee straight.
+        patellofemoral_space: distance between the patella and the femur (less than ``gap``).
+            With a layer of soft tissue left between them (as when the patella sat ``2 gap``
+            off the femur), that layer carried the patellofemoral pressure and was crushed
+            as the patella slid down (det F 0.58 at 21 degrees).
         tendon_semi_axes: ``(x, y)`` semi-axes of the quadriceps tendon's section.
         tendon_length: length of the quadriceps tendon above the patella.
         ligament_semi_axes: ``(x, y)`` semi-axes of the patellar ligament's section.
         quadriceps_start: ``z`` where the quadriceps begins (above the patella).
         attachment_level: above this ``z`` the thigh tissue is glued to the back of the femoral
             shaft (below it, and in front, it slides: the clearance gap).
-        crease_level: ``z`` of the popliteal crease behind the knee.
-        crease_depth: how far the crease cuts into the back of the leg from the skin surface.
+        crease_level: ``z`` of the popliteal crease (and of the fossa's centre) behind the knee.
+        fossa_depth: depth of the popliteal fossa (the hollow behind the knee) below the skin
+            surface of the envelope, at ``x = 0``.
+        fossa_radius: radius of the cylinder (along ``x``) that cuts the fossa; the hollow
+            spans about ``2 sqrt(2 fossa_radius fossa_depth)`` along ``z`` and fades out
+            sideways where the round back of the leg passes behind the cylinder.
+        crease_depth: how far the crease cuts into the back of the leg below the fossa's floor.
         crease_half_width: half the opening of the crease.
         crease_half_length: half its extent along ``x``.
     """
@@ -154,27 +172,32 @@ class LegGeometry:
     skin: float = 8.0
     femur_shaft_radius: float = 11.0
     femur_shaft_offset: float = 12.0
+    metaphysis_offset: float = 3.0
+    metaphysis_height: float = 24.0
     condyle_radius: float = 22.0
     condyle_half_distance: float = 15.0
     gap: float = 2.0
     plateau_semi_axes: tuple[float, float] = (36.0, 17.0)
-    plateau_offset: float = 3.0
+    plateau_offset: float = 4.5
     plateau_thickness: float = 20.0
     joint_space_semi_axes: tuple[float, float] = (32.0, 13.0)
-    joint_space_offset: float = 2.0
+    joint_space_offset: float = 3.5
     joint_space_top: float = -8.0
     tibia_shaft_radius: float = 12.0
     tibia_shaft_offset: float = 6.0
     tuberosity_radius: float = 10.0
     patella_semi_axes: tuple[float, float, float] = (19.0, 8.0, 21.0)
     patella_height: float = 24.0
+    patellofemoral_space: float = 1.5
     tendon_semi_axes: tuple[float, float] = (12.0, 5.0)
     tendon_length: float = 32.0
     ligament_semi_axes: tuple[float, float] = (8.0, 3.5)
     quadriceps_start: float = 58.0
     attachment_level: float = 34.0
     crease_level: float = -16.0
-    crease_depth: float = 16.0
+    fossa_depth: float = 14.0
+    fossa_radius: float = 40.0
+    crease_depth: float = 10.0
     crease_half_width: float = 2.0
     crease_half_length: float = 20.0
 
@@ -190,7 +213,9 @@ class LegGeometry:
         for sign in (-1, 1):
             centre = np.array([sign * self.condyle_half_distance, 0.0, 0.0])
             d = np.minimum(d, np.linalg.norm(points - centre, axis=1) - self.condyle_radius)
-        radial = np.hypot(points[:, 0], points[:, 1] - self.femur_shaft_offset)
+        s = np.clip(points[:, 2] / self.metaphysis_height, 0.0, 1.0)
+        axis_y = self.metaphysis_offset + s * (self.femur_shaft_offset - self.metaphysis_offset)
+        radial = np.hypot(points[:, 0], points[:, 1] - axis_y)
         shaft = np.where(
             points[:, 2] >= 0.0,
             radial - self.femur_shaft_radius,
@@ -200,8 +225,10 @@ class LegGeometry:
 
     @property
     def patella_centre(self) -> tuple[float, float, float]:
-        """Centre of the patella: in front of the trochlea, ``2 gap`` clear of the femur (so
-        ``gap`` clear of the femur's clearance, the sliding gap)."""
+        """Centre of the patella: in front of the trochlea, ``patellofemoral_space`` clear of the
+        femur. That is less than ``gap``: the patella takes the part of the femur's clearance it
+        overlaps, so that its back faces the femur directly across the joint space (cartilage
+        on cartilage in a real knee), with no soft tissue between them."""
         a, b, c = self.patella_semi_axes
         theta, phi = np.meshgrid(np.linspace(0, np.pi, 60), np.linspace(0, 2 * np.pi, 120))
         surface = np.column_stack(
@@ -214,7 +241,7 @@ class LegGeometry:
         lo, hi = 0.0, 80.0  # bisection on the centre's y
         for _ in range(50):
             y = 0.5 * (lo + hi)
-            if self.femur_distance(surface + [0.0, y, 0.0]).min() < 2 * self.gap:
+            if self.femur_distance(surface + [0.0, y, 0.0]).min() < self.patellofemoral_space:
                 lo = y
             else:
                 hi = y
@@ -309,10 +336,19 @@ def build_leg_model(
         parts = [
             (3, occ.addSphere(sign * g.condyle_half_distance, 0.0, 0.0, r)) for sign in (-1, 1)
         ]
+        radius = g.femur_shaft_radius + extra
+        z1 = g.metaphysis_height
         parts.append(
-            (3, occ.addCylinder(0.0, g.femur_shaft_offset, 0.0, 0.0, 0.0, g.thigh_length + 10,
-                                g.femur_shaft_radius + extra))
+            (3, occ.addCylinder(0.0, g.femur_shaft_offset, z1, 0.0, 0.0, g.thigh_length + 10 - z1,
+                                radius))
         )  # fmt: skip
+        # the metaphysis: a sheared cylinder from the condyles up to the straight shaft
+        loops = [
+            occ.addCurveLoop([occ.addCircle(0.0, y, z, radius)])
+            for y, z in ((g.metaphysis_offset, 0.0), (g.femur_shaft_offset, z1))
+        ]
+        parts += [dt for dt in occ.addThruSections(loops, makeSolid=True, makeRuled=True)
+                  if dt[0] == 3]  # fmt: skip
         return fuse(parts)
 
     # -- bones
@@ -365,7 +401,8 @@ def build_leg_model(
         )  # fmt: skip
         # the crease: a slot with a rounded bottom, drawn in the y-z plane and extruded along x
         back = -g.outer_radius(g.crease_level) - 10.0
-        centre = -g.outer_radius(g.crease_level) + g.crease_depth - g.crease_half_width
+        floor = -g.outer_radius(g.crease_level) + g.fossa_depth
+        centre = floor + g.crease_depth - g.crease_half_width
         w = g.crease_half_width + inset
         half = g.crease_half_length + inset
         z = g.crease_level
@@ -382,7 +419,13 @@ def build_leg_model(
             occ.addLine(p[4], p[0]),
         ]
         slot = extrude_face(curves, 2 * half, 0.0, 0.0)
-        return cut(fuse([thigh_cone, shank_cone]), [slot])
+        # the popliteal fossa: a cylinder along x whose front touches the fossa's floor
+        fossa = (
+            3,
+            occ.addCylinder(-100.0, floor - g.fossa_radius, z, 200.0, 0.0, 0.0,
+                            g.fossa_radius + inset),
+        )  # fmt: skip
+        return cut(fuse([thigh_cone, shank_cone]), [slot, fossa])
 
     outer = envelope(0.0)
     inner = envelope(g.skin)
@@ -492,8 +535,10 @@ def build_leg_model(
     gmsh.option.setNumber("Mesh.MeshSizeMax", h_interior)
     gmsh.option.setNumber("General.NumThreads", 1)  # the same mesh on every run
     gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+    gmsh.option.setNumber("Mesh.OptimizeThreshold", 0.45)
     gmsh_model.mesh.generate(3)
-    gmsh_model.mesh.optimize("")
+    gmsh_model.mesh.optimize("", niter=3)
+    gmsh_model.mesh.optimize("Relocate3D")
 
 
 def leg_mesh(

@@ -139,7 +139,8 @@ def _snake_apple_claims(output: Path) -> None:
 def _knee_claims(output: Path) -> None:
     """The reduced knee (coarse leg, the first few degrees of flexion): every step converged,
     the contact surfaces penetrate less than a tenth of the boundary element size, no element
-    is inverted, and the patella is pulled distally by the ligament (nothing prescribes it)."""
+    is inverted, the patella is pulled distally by the ligament (nothing prescribes it), and
+    the last step is in the checkpoint a resumed run starts from."""
     summary = json.loads((output / "knee.json").read_text())
     assert summary["completed"], summary["failure"]
     steps = summary["steps"]
@@ -153,6 +154,11 @@ def _knee_claims(output: Path) -> None:
     assert dz[-1] < 0.0, dz
     assert all(b <= a + 1e-9 for a, b in itertools.pairwise(dz)), dz
     assert summary["mesh"]["inverted"] == 0
+    with np.load(output / "knee_checkpoint.npz") as checkpoint:
+        meta = json.loads(str(checkpoint["meta"]))
+        assert meta["steps"] == len(steps) and meta["load"] == pytest.approx(1.0), meta
+        assert np.isfinite(checkpoint["field/u"]).all()
+    assert len(json.loads((output / "knee_steps.json").read_text())) == len(steps)
     for picture in ("knee_skin.png", "knee_cutaway.png", "knee_flexion.gif"):
         assert (output / picture).stat().st_size > 0
 
