@@ -557,7 +557,6 @@ def leg_mesh(
         ``(mesh, cell_tags, facet_tags)`` with the tags of this module.
     """
     return gmsh_build_to_mesh(lambda model: build_leg_model(model, geometry, resolution), comm)
-    return mesh, cell_tags, facet_tags
 
 
 def mesh_statistics(mesh: dolfinx.mesh.Mesh) -> dict[str, float]:
