@@ -106,14 +106,16 @@ class ContactOperator:
         self.comm: MPI.Comm = mesh.comm
         # stacklevel of the deficiency warning: the surface's set-up, its __init__, this
         # __init__, the compile-notice wrapper
-        self.surface = ContactSurface(u, depth, split_deficient, warn_stacklevel=4)
+        self.surface = ContactSurface(
+            u, depth, integration, margin, split_deficient, warn_stacklevel=4
+        )
         s = self.surface
         self.num_vertices = s.num_vertices
         self.num_bodies, self.body_of_vertex = s.num_bodies, s.body_of_vertex
         self.split_deficient = s.split_deficient
         self.depth_deficiency: DepthDeficiency = s.depth_deficiency
         self.num_split_tets = s.num_split_tets
-        self.margin = float(0.1 * s.mean_edge if margin is None else margin)
+        self.margin = s.margin
 
         self._u_last: np.ndarray | None = None
         self._pair_a = np.empty(0, dtype=INDEX)
@@ -121,8 +123,9 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._cache: dict[str, typing.Any] = {}
-        self.update()
+        # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(self, allow_reference_overlap)
+        self.update()
 
     # -- geometry -------------------------------------------------------------------------
 

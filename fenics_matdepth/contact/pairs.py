@@ -28,6 +28,8 @@ def candidate_pairs(
         in ``surface.nodes`` (collocation), and rows of ``surface.tets``.
     """
     x, tets = surface.x, surface.tets
+    if surface.tree is None:  # no tetrahedra held
+        return np.empty(0, dtype=tets.dtype), np.empty(0, dtype=tets.dtype)
     if integration == "area":
         lo, hi = element_boxes(x, surface.tri)
         qa, qk = surface.tree.query_boxes(lo, hi, margin=margin)
