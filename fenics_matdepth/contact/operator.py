@@ -346,8 +346,10 @@ class ContactOperator:
             ``deficient_tets``, the number of tetrahedra touching the boundary
             ``boundary_adjacent_tets``, the ratio ``deficient_fraction`` and ``split_tets``,
             how many the operator splits around their centroid (see ``split_deficient``),
-            and what this rank holds: ``held_vertices`` and ``held_tets`` (counts on this
-            rank, owned plus halo).
+            and what this rank holds and sends (counts on this rank, see
+            :meth:`fenics_matdepth.contact.surface.ContactSurface.sizes`): ``held_vertices``
+            and ``held_tets`` (owned plus halo), ``halo_tets``, ``neighbours``,
+            ``update_bytes_sent`` and ``halo_refreshes``.
         """
         r = self._evaluate(True, False)
         return {

@@ -78,20 +78,24 @@ class ContactSurface:
     Attributes:
         num_vertices: global number of vertices (P1 blocks).
         global_vertex: (num_held,) global vertex number of each held vertex.
-        X: (num_held, 3) reference coordinates; x: current coordinates (L).
+        X: (num_held, 3) reference coordinates (L).
+        x: (num_held, 3) current coordinates (L).
         depth: (num_held,) material depth (L).
         tets: (num_tets, 4) held tetrahedra (held numbering), the owned ones first.
         tri: (num_tri, 3) boundary triangles this rank owns (held numbering).
         nodes: held indices of the boundary vertices this rank owns (collocation).
         weight: (num_held,) collocation weight (one third of the adjacent boundary area) of
             the owned boundary vertices, 0 elsewhere (L^2).
-        kernel_tets, kernel_depth: the tetrahedra and depths the pair kernels get (a fifth
-            column and centroid depths for split deficient tetrahedra).
+        kernel_tets: the tetrahedra the pair kernels get (a fifth column, the index in
+            ``kernel_depth`` of the centroid depth of a split deficient tetrahedron, or -1).
+        kernel_depth: the depths the pair kernels get (held vertices, then centroids).
         body: (num_held,) body (connected component) of each held vertex.
         body_of_vertex: (num_vertices,) body of every vertex (global numbering, on every
             rank).
         bc: (3 num_held,) True on Dirichlet dofs.
-        margin, halo_margin: pattern margin and halo margin (L).
+        margin: the sparsity pattern's pair-search margin (L).
+        halo_margin: the halo's margin (L): ``margin`` plus the mean boundary edge length.
+        held_fields: the per-vertex fields of ``vertex_fields`` over the held vertices.
         refreshes: number of halo builds so far.
     """
 
