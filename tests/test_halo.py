@@ -272,3 +272,19 @@ def test_four_ranks():
         pytest.skip("mpirun does not allow 4 slots here")
     assert result.returncode == 0, tail
     assert " passed" in result.stdout and "failed" not in result.stdout, tail
+
+
+def test_pull_brings_each_held_vertex_its_owners_value():
+    """A per-vertex field pulled from the owners (here the global vertex number, and the
+    reference coordinates from dolfinx's geometry) arrives at every held vertex, halo
+    included."""
+    comm = MPI.COMM_WORLD
+    V, _, op = _operator(_mesh(comm, _pressed_pair), _press, penalty=50.0)
+    s = op.surface
+    n_owned = V.dofmap.index_map.size_local
+    owned = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
+    assert np.array_equal(s.pull(owned.astype(np.int64)), s.global_vertex)
+    X = p1_dof_coordinates(V)
+    assert np.array_equal(s.pull(X[:n_owned])[: X.shape[0]], X)  # owned and ghost rows
+    g = s.gathered()["X"]
+    assert np.array_equal(s.pull(X[:n_owned]), g[s.global_vertex])  # halo rows too

@@ -95,7 +95,12 @@ class ContactSurface:
         bc: (3 num_held,) True on Dirichlet dofs.
         margin: the sparsity pattern's pair-search margin (L).
         halo_margin: the halo's margin (L): ``margin`` plus the mean boundary edge length.
+        vertex_fields: per-vertex fields over the owned vertices (``X``, ``depth``,
+            ``body``) carried to every rank that holds the vertex: a field added here is pulled
+            into ``held_fields`` at every halo build (fields that change between builds go
+            through :meth:`pull`).
         held_fields: the per-vertex fields of ``vertex_fields`` over the held vertices.
+        mean_edge: mean boundary edge length (L), 0 without boundary triangles.
         refreshes: number of halo builds so far.
     """
 
@@ -144,7 +149,7 @@ class ContactSurface:
         edges = X_local[self.tri[:, [1, 2, 0]]] - X_local[self.tri]
         total = comm.allreduce(float(np.linalg.norm(edges, axis=2).sum()))
         count = comm.allreduce(int(edges.shape[0] * 3))
-        #: mean boundary edge length (L), 0 without boundary triangles
+        # mean boundary edge length (L), 0 without boundary triangles
         self.mean_edge = total / count if count else 0.0
         self.margin = float(0.1 * self.mean_edge if margin is None else margin)
         self.halo_margin = self.margin + self.mean_edge
@@ -157,8 +162,8 @@ class ContactSurface:
         self._setup_deficient(
             mesh, owned_cells, depth_block, X_local, split_deficient, warn_stacklevel + 1
         )
-        #: per-vertex fields carried to the ranks that hold a vertex (owned rows): add a field
-        #: here to have it pulled at every halo build into ``held_fields``
+        # per-vertex fields carried to the ranks that hold a vertex (owned rows): add a field
+        # here to have it pulled at every halo build into ``held_fields``
         self.vertex_fields: dict[str, np.ndarray] = {
             "X": X_local[:n_owned],
             "depth": depth_block[:n_owned],
@@ -312,11 +317,23 @@ class ContactSurface:
             return np.full(v.shape, -1, dtype=INDEX)
         return np.where(self._sorted[pos] == v, self._order[pos], -1).astype(INDEX)
 
-    def _pull_displacement(self) -> np.ndarray:
-        u_owned = self.u.x.array[: 3 * self._n_owned].reshape(-1, 3)
-        held = np.empty((self.num_held, 3), dtype=FLOAT)
-        self._exchange.pull(u_owned, held)
+    def pull(self, owned: np.ndarray) -> np.ndarray:
+        """A per-vertex field over the held vertices, from its owned rows (collective: a
+        neighbour exchange, for fields that change between halo builds, such as ``u``).
+
+        Args:
+            owned: (n_owned, ...) the field's values at this rank's owned vertices.
+
+        Returns:
+            (num_held, ...) its values at the held vertices.
+        """
+        owned = np.asarray(owned)
+        held = np.empty((self.num_held, *owned.shape[1:]), dtype=owned.dtype)
+        self._exchange.pull(owned, held)
         return held
+
+    def _pull_displacement(self) -> np.ndarray:
+        return self.pull(self.u.x.array[: 3 * self._n_owned].reshape(-1, 3))
 
     def update(self) -> None:
         """Current coordinates of the held vertices from ``u`` (a neighbour exchange); the halo
