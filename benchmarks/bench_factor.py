@@ -101,7 +101,7 @@ def main():
         )
     ]
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=215.0)
-    upper = contact.body_of_vertex[np.argmax(contact._X[:, 2])]
+    upper = contact.body_of_vertex[np.argmax(contact.surface.gathered()["X"][:, 2])]
     u.x.array.reshape(-1, 3)[contact.body_of_vertex == upper, 2] = -args.sink
     contact.update()
     contact.set_bcs(bcs)

@@ -1,11 +1,13 @@
 """Seconds per Newton iteration on a ~40k-tetrahedron two-body contact problem, split into
-bulk assembly, contact update (gather, refit, pair search), contact assembly (pair kernels and
-insertion) and the linear solve (MUMPS LU).
+bulk assembly, contact update (displacement from neighbours, refit, pair search), contact
+assembly (pair kernels and insertion) and the linear solve (MUMPS LU).
 
 A 1.5 x 1.5 x 0.5 neo-Hookean block and a 1 x 1 x 0.5 block resting on it; the upper block's
 top is pushed down in two load steps, so contact is active over most of the interface.
 
-Run: ``scripts/fenicsx python3 benchmarks/bench_newton.py`` (or under ``mpirun -n 2``).
+Run: ``scripts/fenicsx python3 benchmarks/bench_newton.py`` (or under ``mpirun -n 2``). Prints
+what each rank holds (vertices, tetrahedra, halo tetrahedra) and the displacement bytes it
+sends per contact update.
 Targets: contact update + contact assembly under 25 % of an iteration, and an iteration at most
 1.3 times one Newton iteration of the same model without contact (bulk assembly + linear
 solve). Prints figures; asserts nothing about time.
@@ -34,6 +36,9 @@ from test_operator import _box_tets
 
 TARGET_CONTACT_SHARE = 0.25
 TARGET_ITERATION_RATIO = 1.3
+#: What each rank holds and sends (``ContactOperator.diagnostics``; absent before the halo).
+HALO_KEYS = ("held_vertices", "held_tets", "halo_tets", "neighbours", "update_bytes_sent",
+             "halo_refreshes")  # fmt: skip
 
 
 def bulk_newton_iteration(
@@ -144,6 +149,7 @@ def main():
     wall = comm.allreduce(wall, op=MPI.MAX)
     cpu = comm.allreduce(cpu, op=MPI.MAX)
     diag = contact.diagnostics()
+    held = comm.gather({k: diag.get(k) for k in HALO_KEYS}, root=0)
     reference = bulk_newton_iteration(residual, u, bcs, problem.snes.getKSP())
     if comm.rank != 0:
         return
@@ -157,6 +163,8 @@ def main():
         f"max penetration {diag['max_penetration']:.2e}; "
         f"matrix rebuilds {problem.pattern_rebuilds}"
     )
+    for rank, sizes in enumerate(held):
+        print(f"  rank {rank}: " + ", ".join(f"{k} {v}" for k, v in sizes.items()))
     per_it = {k: v / iterations for k, v in totals.items()}
     other = wall / iterations - sum(per_it.values())
     for key, value in {**per_it, "other (SNES, line search)": other}.items():

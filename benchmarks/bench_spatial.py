@@ -163,7 +163,7 @@ def bench_depth_dolfinx(n):
     import dolfinx
 
     from fenics_matdepth import material_depth
-    from fenics_matdepth.depth import _p1_dof_coordinates, boundary_triangles
+    from fenics_matdepth.boundary import boundary_triangles, p1_dof_coordinates
 
     t0 = time.perf_counter()
     mesh = dolfinx.mesh.create_box(
@@ -189,7 +189,7 @@ def bench_depth_dolfinx(n):
     tri = boundary_triangles(mesh)
     t1 = time.perf_counter()
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1))
-    xd = _p1_dof_coordinates(V)
+    xd = p1_dof_coordinates(V)
     t2 = time.perf_counter()
     distance_to_triangles(xd, tri)
     t3 = time.perf_counter()

@@ -177,8 +177,8 @@ def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
 
 def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     """Global vertex indices (topology numbering) of all exterior triangles, on every rank."""
-    from fenics_matdepth.contact.operator import _allgather_rows
-    from fenics_matdepth.depth import owned_exterior_facets
+    from fenics_matdepth._mpi import allgather_rows
+    from fenics_matdepth.boundary import owned_exterior_facets
 
     facets = owned_exterior_facets(mesh)
     mesh.topology.create_connectivity(2, 0)
@@ -186,7 +186,7 @@ def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     local = f2v[facets]
     imap = mesh.topology.index_map(0)
     glob = imap.local_to_global(local.ravel().astype(np.int32)).reshape(-1, 3)
-    return _allgather_rows(mesh.comm, glob.astype(np.int64))
+    return allgather_rows(mesh.comm, glob.astype(np.int64))
 
 
 def check_manifold_boundary(mesh: dolfinx.mesh.Mesh) -> None:
@@ -278,13 +278,15 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
     from fenics_matdepth.contact.kernels import _area_pairs_active, _area_pairs_max_depth
     from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
+    surface = contact.surface  # held numbering (see fenics_matdepth.contact.surface)
     deepest = np.zeros(contact.num_bodies)
-    np.maximum.at(deepest, contact.body_of_vertex, contact._depth)
+    np.maximum.at(deepest, surface.body, surface.depth)
     # Depth-deficient tetrahedra split around their centroid carry the centroid's depth.
-    tets, depth = contact._kernel_tets, contact._kernel_depth
+    tets, depth = surface.kernel_tets, surface.kernel_depth
     if tets.shape[1] == 5:
         split = tets[:, 4] >= 0
-        np.maximum.at(deepest, contact.body_of_vertex[tets[split, 0]], depth[tets[split, 4]])
+        np.maximum.at(deepest, surface.body[tets[split, 0]], depth[tets[split, 4]])
+    contact.comm.Allreduce(MPI.IN_PLACE, deepest, op=MPI.MAX)
     shallow = np.flatnonzero(deepest <= 0.0)
     if shallow.size:
         raise ValueError(
@@ -296,11 +298,12 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
         )
     if allow_reference_overlap:
         return
-    X, tri = contact._X, contact._tri
-    tree = AABBTree(X, contact._tets)
+    # the surface holds, at u = 0, every tetrahedron its triangles can meet
+    X, tri, held_tets = surface.X, surface.tri, surface.tets
+    tree = AABBTree(X, held_tets)
     lo, hi = element_boxes(X, tri)
     pa, pk = tree.query_boxes(lo, hi)
-    pa, pk = exclude_shared_vertex_pairs(tri, contact._tets, pa, pk)
+    pa, pk = exclude_shared_vertex_pairs(tri, held_tets, pa, pk)
     active, _, _, _ = _area_pairs_active(X, depth, tri, tets, pa, pk, contact.penalty, False, False)
     pa, pk = pa[active], pk[active]
     g = _area_pairs_max_depth(X, depth, tri, tets, pa, pk)
@@ -308,7 +311,7 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
     inside = g > tolerance
     count = contact.comm.allreduce(int(np.count_nonzero(inside)))
     if count:
-        bodies = contact.body_of_vertex
+        bodies = surface.body
         between = inside & (bodies[tri[pa, 0]] != bodies[tets[pk, 0]])
         n_between = contact.comm.allreduce(int(np.count_nonzero(between)))
         deepest_g = contact.comm.allreduce(float(g.max(initial=0.0)), op=MPI.MAX)
@@ -356,13 +359,13 @@ class CellDeterminants:
     """
 
     def __init__(self, V: dolfinx.fem.FunctionSpace):
-        from fenics_matdepth.depth import _p1_dof_coordinates
+        from fenics_matdepth.boundary import p1_dof_coordinates
 
         mesh = V.mesh
         self._comm = mesh.comm
         num_owned = mesh.topology.index_map(3).size_local
         self._cells = np.asarray(V.dofmap.list).reshape(-1, 4)[:num_owned]
-        self._X = _p1_dof_coordinates(V)
+        self._X = p1_dof_coordinates(V)
         self._vol6 = _signed_volumes6(self._X[self._cells])
 
     def local_min(self, u_local: np.ndarray) -> float:

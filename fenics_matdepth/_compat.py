@@ -207,7 +207,9 @@ def geometry_dofmap(mesh):
     return dofmaps[0] if dofmaps is not None else geometry.dofmap
 
 
-def create_tetrahedral_mesh(comm, cells, x, degree: int = 1, all_cells_on_rank0: bool = False):
+def create_tetrahedral_mesh(
+    comm, cells, x, degree: int = 1, all_cells_on_rank0: bool = False, cell_ranks=None
+):
     """A tetrahedral mesh from node coordinates and cells (rank 0's data is used).
 
     ``dolfinx.mesh.create_mesh`` takes ``(comm, cells, x, element)`` on 0.9 and
@@ -221,6 +223,8 @@ def create_tetrahedral_mesh(comm, cells, x, degree: int = 1, all_cells_on_rank0:
         x: (m, 3) node coordinates.
         degree: degree of the coordinate element.
         all_cells_on_rank0: keep every cell on rank 0 (the other ranks get none).
+        cell_ranks: (n,) rank that owns each cell (rank 0's array is used), instead of the
+            graph partitioner's choice.
     """
     import basix.ufl
     import numpy as np
@@ -243,6 +247,16 @@ def create_tetrahedral_mesh(comm, cells, x, degree: int = 1, all_cells_on_rank0:
             return getattr(dest, "_cpp_object", dest)
 
         kwargs["partitioner"] = to_rank0
+    elif cell_ranks is not None:
+        ranks = np.asarray(cell_ranks, dtype=np.int32) if comm.rank == 0 else None
+
+        def to_given_ranks(comm, nparts, cell_types, local_cells):
+            n = np.asarray(local_cells[0]).size // 4 if local_cells else 0
+            dest = ranks if n else np.empty(0, dtype=np.int32)
+            dest = dolfinx.graph.adjacencylist(np.ascontiguousarray(dest, dtype=np.int32))
+            return getattr(dest, "_cpp_object", dest)
+
+        kwargs["partitioner"] = to_given_ranks
     if DOLFINX_VERSION >= (0, 10):
         return dolfinx.mesh.create_mesh(comm, cells, element, x, **kwargs)
     return dolfinx.mesh.create_mesh(comm, cells, x, element, **kwargs)

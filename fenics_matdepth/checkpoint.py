@@ -43,7 +43,7 @@ FORMAT = "fenics_matdepth.checkpoint/1"
 
 def _vertex_keys(V: dolfinx.fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray]:
     """Original input vertex index and reference coordinates of every local dof block."""
-    from fenics_matdepth.depth import _p1_dof_coordinates
+    from fenics_matdepth.boundary import p1_dof_coordinates
 
     mesh = V.mesh
     imap = V.dofmap.index_map
@@ -53,7 +53,7 @@ def _vertex_keys(V: dolfinx.fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray]:
     node_of_dof = np.full(n_local, -1, dtype=np.int64)
     node_of_dof[dofs] = nodes
     keys = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[node_of_dof]
-    return keys, _p1_dof_coordinates(V)
+    return keys, p1_dof_coordinates(V)
 
 
 class Checkpoint:

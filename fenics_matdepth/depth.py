@@ -10,22 +10,26 @@ vertex coordinates, 9 floats each), builds an AABB tree over them, and computes 
 for all its P1 dofs, owned and ghost, directly; the values are therefore identical to a serial
 computation and no scatter is needed.
 
-The numba core, :func:`distance_to_triangles`, works on plain arrays.
+The numba core, :func:`distance_to_triangles`, works on plain arrays. The boundary
+extraction (``boundary_triangles``, ``owned_exterior_facets``) lives in
+:mod:`fenics_matdepth.boundary` and is re-exported here.
 """
 
 from __future__ import annotations
 
 import typing
 
-from mpi4py import MPI
-
 import dolfinx
 import numpy as np
 
 from fenics_matdepth._checks import check_contact_mesh, check_mesh
-from fenics_matdepth._compat import geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
+from fenics_matdepth.boundary import (
+    boundary_triangles,
+    owned_exterior_facets,
+    p1_dof_coordinates,
+)
 from fenics_matdepth.geometry.bvh import AABBTree
 
 __all__ = [
@@ -104,69 +108,6 @@ def distance_to_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarr
 _check_mesh = check_mesh
 
 
-def owned_exterior_facets(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
-    """Local indices of the exterior facets (one cell in the whole mesh) this rank owns.
-
-    Every exterior facet is owned by exactly one rank, so each boundary triangle is handled
-    once across the ranks.
-    """
-    tdim = mesh.topology.dim
-    mesh.topology.create_connectivity(tdim - 1, tdim)
-    facets = np.asarray(dolfinx.mesh.exterior_facet_indices(mesh.topology), dtype=np.int32)
-    # exterior_facet_indices returns owned facets; keep only those in case a version adds ghosts.
-    return facets[facets < mesh.topology.index_map(tdim - 1).size_local]
-
-
-def boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
-    """Vertex coordinates of all exterior boundary triangles of the mesh, on every rank.
-
-    A facet is exterior when it belongs to exactly one cell of the whole (distributed) mesh.
-    Each rank contributes the exterior facets it owns; the result is gathered on all ranks in
-    rank order (collective).
-
-    Args:
-        mesh: affine tetrahedral mesh.
-
-    Returns:
-        (m, 3, 3) triangle vertex coordinates (mesh length unit).
-    """
-    check_mesh(mesh)
-    tdim = mesh.topology.dim
-    facets = owned_exterior_facets(mesh)
-    if facets.size:
-        nodes = dolfinx.mesh.entities_to_geometry(mesh, tdim - 1, facets, False)
-    else:  # DOLFINx 0.9 divides by zero (SIGFPE) on a rank without cells
-        nodes = np.empty((0, 3), dtype=np.int32)
-    local = np.ascontiguousarray(mesh.geometry.x[np.asarray(nodes).reshape(-1, 3)], dtype=FLOAT)
-    local = local.reshape(-1, 9)
-    comm = mesh.comm
-    counts = np.asarray(comm.allgather(local.size), dtype=np.int64)
-    gathered = np.empty(int(counts.sum()), dtype=FLOAT)
-    comm.Allgatherv(local.ravel(), [gathered, counts, MPI.DOUBLE])
-    return gathered.reshape(-1, 3, 3)
-
-
-def _p1_dof_coordinates(V: dolfinx.fem.FunctionSpace) -> np.ndarray:
-    """Exact vertex coordinates of every local (owned + ghost) P1 dof.
-
-    Taken from the geometry nodes through the cell-wise maps (P1 dofs and degree-1 geometry
-    nodes both follow the reference vertex order), not from tabulate_dof_coordinates, so that
-    boundary vertices coincide bit for bit with the triangle vertices and get depth exactly 0.
-    """
-    mesh = V.mesh
-    imap = V.dofmap.index_map
-    n_dofs = imap.size_local + imap.num_ghosts
-    dofs = np.asarray(V.dofmap.list).reshape(-1)
-    nodes = np.asarray(geometry_dofmap(mesh)).reshape(-1)
-    if dofs.shape != nodes.shape:
-        raise RuntimeError("P1 dofmap and geometry dofmap differ in shape: not an affine mesh")
-    node_of_dof = np.full(n_dofs, -1, dtype=np.int64)
-    node_of_dof[dofs] = nodes
-    if np.any(node_of_dof < 0):
-        raise RuntimeError("some P1 dofs belong to no local cell")
-    return np.ascontiguousarray(mesh.geometry.x[node_of_dof], dtype=FLOAT)
-
-
 @announces_compilation("the material depth (distance to the boundary)")
 def material_depth(mesh: dolfinx.mesh.Mesh) -> dolfinx.fem.Function:
     """Material depth of every vertex: exact distance to the exterior boundary (collective).
@@ -193,7 +134,7 @@ def material_depth(mesh: dolfinx.mesh.Mesh) -> dolfinx.fem.Function:
         )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1))
     depth = dolfinx.fem.Function(V, name="material_depth")
-    depth.x.array[:] = distance_to_triangles(_p1_dof_coordinates(V), triangles)
+    depth.x.array[:] = distance_to_triangles(p1_dof_coordinates(V), triangles)
     return depth
 
 

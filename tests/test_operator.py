@@ -146,7 +146,7 @@ def test_jacobian_insertion_matches_sorted_coo(integration):
     assert scale > 0.0
     assert np.abs(inserted - reference).max() <= 1e-13 * scale
     # the Dirichlet rows and columns stay empty, and there are some
-    fixed = np.flatnonzero(op._bc_mask)  # gathered: the same on every rank
+    fixed = np.flatnonzero(op.surface.gathered()["bc"])  # the same on every rank
     assert len(fixed) > 0 and not inserted[fixed].any() and not inserted[:, fixed].any()
     A.destroy()
 
@@ -209,7 +209,7 @@ def test_max_penetration_of_sunk_block(integration):
     u = dolfinx.fem.Function(V)
     depth = fm.material_depth(mesh)
     op = ContactOperator(u, depth, penalty=1.0, integration=integration)
-    upper = op.body_of_vertex[np.argmax(op._X[:, 2])]
+    upper = op.body_of_vertex[np.argmax(op.surface.gathered()["X"][:, 2])]
     n_owned = V.dofmap.index_map.size_local
     glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
     uz = u.x.array[: 3 * n_owned].reshape(-1, 3)[:, 2]
@@ -233,7 +233,7 @@ def test_force_resultants_are_opposite_and_match_rigid_translation():
     n_owned = V.dofmap.index_map.size_local
     glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
     body = op.body_of_vertex[glob]
-    upper = op.body_of_vertex[np.argmax(op._X[:, 2])]
+    upper = op.body_of_vertex[np.argmax(op.surface.gathered()["X"][:, 2])]
     assert res[upper, 2] > 0.0  # pushed up, out of the lower body
     u0 = u.x.array.copy()
     h = 1e-6

@@ -319,6 +319,6 @@ def test_contact_with_body_force_and_follower_pressure():
     pressure_z = total(traction[2] * ds(1))
     assert pressure_z < 0.0 and weight > 0.0
     res = contact.force_resultants()
-    upper_body = contact.body_of_vertex[np.argmax(contact._X[:, 2])]
+    upper_body = contact.body_of_vertex[np.argmax(contact.surface.gathered()["X"][:, 2])]
     expected = weight - pressure_z  # the contact force holds both up
     assert abs(res[upper_body, 2] - expected) <= 1e-8 * expected, (res, expected)

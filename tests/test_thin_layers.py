@@ -330,7 +330,7 @@ def _plane_bc(V, axis: int, value: float, component: int) -> dolfinx.fem.Dirichl
 
 
 def _upper_body(op: ContactOperator) -> int:
-    return int(op.body_of_vertex[np.argmax(op._X[:, 2])])
+    return int(op.body_of_vertex[np.argmax(op.surface.gathered()["X"][:, 2])])
 
 
 def _press_plate(lower_layers: int, split: bool) -> dict:
@@ -372,8 +372,9 @@ def _press_plate(lower_layers: int, split: bool) -> dict:
     )
     result = problem.solve()
     op.update()
-    X = op._X
-    U = op._x - op._X
+    g = op.surface.gathered()
+    X = g["X"]
+    U = g["x"] - g["X"]
     inner = np.all((X[:, :2] > 0.2 - 1e-9) & (X[:, :2] < 0.8 + 1e-9), axis=1)
     face = np.isclose(X[:, 2], top_lower) & inner
     up = op.body_of_vertex == upper
@@ -540,12 +541,13 @@ def _press_block(split: bool, penalty: float = 2.0) -> np.ndarray:
     assert problem.solve().converged
     op.update()
     up = op.body_of_vertex == upper_body
-    lower_tets = op._tets[~up[op._tets[:, 0]]]
+    g = op.surface.gathered()
+    lower_tets = g["tets"][~up[g["tets"][:, 0]]]
     n = PATCH_UPPER[0]
-    bottom_v = np.flatnonzero(up & np.isclose(op._X[:, 2], 1.0))
-    overlap = _depth_at(op._x[bottom_v], op._x, lower_tets, op._depth)
+    bottom_v = np.flatnonzero(up & np.isclose(g["X"][:, 2], 1.0))
+    overlap = _depth_at(g["x"][bottom_v], g["x"], lower_tets, g["depth"])
     grid = np.full((n + 1, n + 1), np.nan)
-    ij = np.rint((op._X[bottom_v, :2] - 0.5) * n).astype(int)
+    ij = np.rint((g["X"][bottom_v, :2] - 0.5) * n).astype(int)
     grid[ij[:, 0], ij[:, 1]] = overlap * penalty / PRESSURE
     return grid
 

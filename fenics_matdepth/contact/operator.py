@@ -1,16 +1,17 @@
 """ContactOperator: the material-depth contact energy of a P1 displacement, in PETSc terms.
 
-The operator owns the contact geometry of one dolfinx mesh (all bodies in one mesh): the
-exterior boundary triangles, the tetrahedra, the material depth of every vertex, and an AABB
-tree over the tetrahedra that is refitted at every :meth:`ContactOperator.update`. It adds the
-exact first and second derivatives of the contact energy into dolfinx-assembled PETSc vectors
-and matrices.
+The operator owns the contact geometry of one dolfinx mesh (all bodies in one mesh) and adds
+the exact first and second derivatives of the contact energy into dolfinx-assembled PETSc
+vectors and matrices. It is a thin class over three modules:
 
-Parallel strategy (first version, correct on any partition): every rank holds the global
-vertex coordinates, depths and tetrahedra (gathered once; the displacement is gathered at each
-update), and handles the boundary triangles whose facets it owns against every tetrahedron.
-Contributions to dofs owned by other ranks go through PETSc's off-process assembly (VecSetValues
-/ MatSetValues stashes). Memory per rank therefore grows with the global mesh size.
+* :mod:`fenics_matdepth.contact.surface`: what a rank holds (vertices, tetrahedra, boundary
+  triangles, depths, the AABB tree over its tetrahedra) and how it follows ``u``;
+* :mod:`fenics_matdepth.contact.pairs`: candidate pairs and the sparsity-pattern couplings;
+* :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc.
+
+Each rank handles the boundary triangles whose facets it owns, so every (triangle,
+tetrahedron) pair is evaluated once across the ranks; contributions to dofs owned by other
+ranks go through PETSc's off-process assembly (VecSetValues / MatSetValues stashes).
 
 Numbering: the vertices of the operator are the *blocks* of the P1 vector space of ``u``,
 in the global block numbering of its index map; the dof of component c of vertex v is
@@ -20,10 +21,8 @@ in the global block numbering of its index map; the dof of component c of vertex
 from __future__ import annotations
 
 import typing
-import warnings
 
 from mpi4py import MPI
-from mpi4py.util.dtlib import from_numpy_dtype
 from petsc4py import PETSc
 
 import dolfinx
@@ -32,44 +31,18 @@ import numpy as np
 from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
+from fenics_matdepth.contact import assembly, pairs
 from fenics_matdepth.contact.kernels import (
-    _accumulate_vertex_blocks,
     _area_pairs_active,
     _area_pairs_max_depth,
-    _blocks_to_csr,
     _collocation_pairs,
-    _count_missing_couplings,
 )
-from fenics_matdepth.depth import (
-    DepthDeficiency,
-    _p1_dof_coordinates,
-    boundary_triangles,
-    count_depth_deficient,
-    depth_deficient_tets,
-    distance_to_triangles,
-    owned_exterior_facets,
-)
-from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
-from fenics_matdepth.geometry.clip import _near_pairs
+from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
+from fenics_matdepth.depth import DepthDeficiency
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
 _INTEGRATIONS = ("area", "collocation")
-
-
-class DepthDeficiencyWarning(UserWarning):
-    """Some tetrahedra have material depth 0 at all four vertices (see
-    :func:`fenics_matdepth.depth.depth_deficient_tets`)."""
-
-
-def _allgather_rows(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
-    """Concatenate the ranks' row blocks of ``local`` (rank order) on every rank."""
-    local = np.ascontiguousarray(local)
-    width = int(np.prod(local.shape[1:], dtype=np.int64))
-    counts = np.asarray(comm.allgather(local.shape[0] * width), dtype=np.int64)
-    out = np.empty(int(counts.sum()), dtype=local.dtype)
-    comm.Allgatherv(local.reshape(-1), [out, counts, from_numpy_dtype(local.dtype)])
-    return out.reshape((-1, *local.shape[1:]))
 
 
 class ContactOperator:
@@ -131,147 +104,30 @@ class ContactOperator:
         self.penalty = penalty
         self.integration = integration
         self.comm: MPI.Comm = mesh.comm
-
-        imap = V.dofmap.index_map
-        self._n_owned = imap.size_local
-        n_local = imap.size_local + imap.num_ghosts
-        self._local_to_global = imap.local_to_global(np.arange(n_local, dtype=np.int32)).astype(
-            INDEX
+        # stacklevel of the deficiency warning: the surface's set-up, its __init__, this
+        # __init__, the compile-notice wrapper
+        self.surface = ContactSurface(
+            u, depth, integration, margin, split_deficient, warn_stacklevel=4
         )
-        self._offset = imap.local_range[0]
-        self.num_vertices = imap.size_global
+        s = self.surface
+        self.num_vertices = s.num_vertices
+        self.num_bodies, self.body_of_vertex = s.num_bodies, s.body_of_vertex
+        self.split_deficient = s.split_deficient
+        self.depth_deficiency: DepthDeficiency = s.depth_deficiency
+        self.num_split_tets = s.num_split_tets
+        self.margin = s.margin
 
-        # Global reference coordinates and depths (owned blocks in rank order = global order).
-        depth.x.scatter_forward()
-        cells = np.asarray(V.dofmap.list, dtype=INDEX).reshape(-1, 4)
-        dcells = np.asarray(depth.function_space.dofmap.list, dtype=INDEX).reshape(-1, 4)
-        depth_block = np.empty(n_local, dtype=FLOAT)
-        depth_block[cells.ravel()] = depth.x.array[dcells.ravel()]
-        X_local = _p1_dof_coordinates(V)
-        self._X = _allgather_rows(self.comm, X_local[: self._n_owned])
-        self._depth = _allgather_rows(self.comm, depth_block[: self._n_owned])
-        n_cells_owned = mesh.topology.index_map(3).size_local
-        self._tets = _allgather_rows(self.comm, self._local_to_global[cells[:n_cells_owned]])
-
-        # Owned exterior facets -> triangles: the three vertices of the facet's (single) cell
-        # other than the opposite one (the reference tetrahedron's facet i is opposite vertex i).
-        facets = owned_exterior_facets(mesh)
-        mesh.topology.create_connectivity(3, 2)
-        f2c = mesh.topology.connectivity(2, 3)
-        c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
-        cell = np.asarray(f2c.array)[np.asarray(f2c.offsets)[facets]]
-        opposite = np.argmax(c2f[cell] == facets[:, None], axis=1)
-        others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-        tri = cells[cell[:, None], others[opposite]]
-        self._tri = self._local_to_global[tri]
-        # Collocation: owned boundary vertices with weight = 1/3 of the adjacent boundary area
-        # in the reference configuration (kept constant, as the kernel's derivatives assume).
-        all_tri = _allgather_rows(self.comm, self._tri)
-        area = 0.5 * np.linalg.norm(
-            np.cross(
-                self._X[all_tri[:, 1]] - self._X[all_tri[:, 0]],
-                self._X[all_tri[:, 2]] - self._X[all_tri[:, 0]],
-            ),
-            axis=1,
-        )
-        self._weight = np.zeros(self.num_vertices, dtype=FLOAT)
-        np.add.at(self._weight, all_tri.ravel(), np.repeat(area / 3.0, 3))
-        owned = np.arange(self._offset, self._offset + self._n_owned, dtype=INDEX)
-        self._nodes = owned[self._weight[owned] > 0.0]
-
-        if margin is None:
-            edges = self._X[all_tri[:, [1, 2, 0]]] - self._X[all_tri]
-            margin = 0.1 * float(np.mean(np.linalg.norm(edges, axis=2))) if all_tri.size else 0.0
-        self.margin = float(margin)
-
-        # Bodies: connected components of the mesh (vertices linked through tetrahedra).
-        self.num_bodies, self.body_of_vertex = _connected_components(self.num_vertices, self._tets)
-
-        self._setup_deficient(mesh, cells[:n_cells_owned], depth_block, X_local, split_deficient)
-
-        self._bc_mask = np.zeros(3 * self.num_vertices, dtype=bool)
-        self._x = self._X.copy()
         self._u_last: np.ndarray | None = None
-        self._tree = AABBTree(self._x, self._tets)
         self._pair_a = np.empty(0, dtype=INDEX)
         self._pair_k = np.empty(0, dtype=INDEX)
-        self._pattern_keys: np.ndarray | None = None
+        self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
+        self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._cache: dict[str, typing.Any] = {}
-        self.update()
+        # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(self, allow_reference_overlap)
-
-    def _setup_deficient(
-        self,
-        mesh: dolfinx.mesh.Mesh,
-        owned_cells: np.ndarray,
-        depth_block: np.ndarray,
-        X_local: np.ndarray,
-        split: bool,
-    ) -> None:
-        """Count the depth-deficient tetrahedra and set up the kernels' tetrahedron and depth
-        arrays (``_kernel_tets``, ``_kernel_depth``).
-
-        A deficient tetrahedron (four vertices at depth 0) is split, inside the kernels, into
-        four sub-tetrahedra around its centroid; the fifth column of ``_kernel_tets`` gives the
-        index in ``_kernel_depth`` of the centroid's depth, its exact reference distance to
-        the exterior boundary (-1: not split). Without deficient tetrahedra (or with
-        ``split=False``) the kernels get the plain arrays, and nothing changes.
-        """
-        self.split_deficient = bool(split)
-        self.depth_deficiency: DepthDeficiency = count_depth_deficient(self._tets, self._depth)
-        self._kernel_tets = self._tets
-        self._kernel_depth = self._depth
-        self.num_split_tets = 0
-        if self.depth_deficiency.deficient and self.comm.rank == 0:
-            n, m = self.depth_deficiency
-            what = (
-                "each is split around its centroid inside the contact operator, which is given "
-                "its exact distance to the boundary (split_deficient=True); meshing thin layers "
-                "with two or more elements across avoids the split"
-                if split
-                else "surfaces entering them feel no contact force (split_deficient=False): "
-                "use split_deficient=True (the default) or mesh thin layers with two or more "
-                "elements across"
-            )
-            warnings.warn(
-                f"{n} of the {m} tetrahedra touching the boundary ({n / m:.1%}) have all four "
-                f"vertices on the boundary, hence material depth 0 everywhere; {what}",
-                DepthDeficiencyWarning,
-                stacklevel=4,  # _setup_deficient, __init__, the compile-notice wrapper
-            )
-        if not (split and self.depth_deficiency.deficient):
-            return
-        # each rank computes the centroid depths of the deficient tetrahedra it owns
-        mask = depth_deficient_tets(owned_cells, depth_block)
-        centroids = X_local[owned_cells[mask]].mean(axis=1)
-        aux = np.zeros(owned_cells.shape[0], dtype=FLOAT)
-        triangles = boundary_triangles(mesh)  # collective
-        if centroids.shape[0]:
-            aux[mask] = distance_to_triangles(centroids, triangles)
-        aux = _allgather_rows(self.comm, aux)  # global cell order, as self._tets
-        split_cells = np.flatnonzero(aux > 0.0)
-        self.num_split_tets = int(split_cells.size)
-        column = np.full(self._tets.shape[0], -1, dtype=INDEX)
-        column[split_cells] = self.num_vertices + np.arange(split_cells.size, dtype=INDEX)
-        self._kernel_tets = np.ascontiguousarray(np.hstack((self._tets, column[:, None])))
-        self._kernel_depth = np.concatenate((self._depth, aux[split_cells]))
+        self.update()
 
     # -- geometry -------------------------------------------------------------------------
-
-    def _current_coordinates(self) -> np.ndarray:
-        u_owned = self.u.x.array[: 3 * self._n_owned].reshape(-1, 3)
-        return self._X + _allgather_rows(self.comm, u_owned)
-
-    def _candidate_pairs(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
-        """(contact element, tetrahedron) pairs whose current boxes overlap (this rank's)."""
-        if self.integration == "area":
-            lo, hi = element_boxes(self._x, self._tri)
-            qa, qk = self._tree.query_boxes(lo, hi, margin=margin)
-            return exclude_shared_vertex_pairs(self._tri, self._tets, qa, qk)
-        pts = self._x[self._nodes]
-        qa, qk = self._tree.query_boxes(pts, pts, margin=margin)
-        keep = np.all(self._tets[qk] != self._nodes[qa, None], axis=1)
-        return qa[keep], qk[keep]
 
     @announces_compilation("the pair search")
     def update(self) -> None:
@@ -280,7 +136,7 @@ class ContactOperator:
         Nothing is recomputed when ``u`` has not changed since the last update (a line search
         evaluating the energy and then the residual at the same point pays once).
         """
-        u_owned = self.u.x.array[: 3 * self._n_owned]
+        u_owned = self.u.x.array[: self.surface.owned_dof_count()]
         bad = not np.all(np.isfinite(u_owned))
         if self.comm.allreduce(bad, op=MPI.LOR):
             raise FloatingPointError(
@@ -291,11 +147,9 @@ class ContactOperator:
         if self.comm.allreduce(same, op=MPI.LAND):
             return
         self._u_last = u_owned.copy()
-        self._x = self._current_coordinates()
-        self._tree.refit(self._x)
-        if self._tree.needs_rebuild():
-            self._tree.rebuild(self._x)
-        self._pair_a, self._pair_k = self._candidate_pairs(0.0)
+        self.surface.update()
+        self._pair_a, self._pair_k = pairs.candidate_pairs(self.surface, self.integration, 0.0)
+        self._held_keys = None
         self._cache.clear()
 
     # -- pair contributions ---------------------------------------------------------------
@@ -308,22 +162,23 @@ class ContactOperator:
         for have in ("TrueTrue", "TrueFalse", "FalseFalse")[: 3 - want_grad - want_hess]:
             if have in self._cache:
                 return self._cache[have]
+        s = self.surface
         if self.integration == "area":
             # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
             # still comes out over its 7 original vertices
             active, energy, grad, hess = _area_pairs_active(
-                self._x, self._kernel_depth, self._tri, self._kernel_tets, self._pair_a,
-                self._pair_k, self.penalty, want_grad, want_hess,
+                s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
+                self.penalty, want_grad, want_hess,
             )  # fmt: skip
-            verts = np.hstack((self._tri[self._pair_a[active]], self._tets[self._pair_k[active]]))
+            pa, pk = self._pair_a[active], self._pair_k[active]
         else:
             energy, grad, hess = _collocation_pairs(
-                self._x, self._kernel_depth, self._weight, self._kernel_tets,
-                self._nodes[self._pair_a], self._pair_k, self.penalty, want_grad, want_hess,
+                s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[self._pair_a],
+                self._pair_k, self.penalty, want_grad, want_hess,
             )  # fmt: skip
-            verts = np.hstack((self._nodes[self._pair_a, None], self._tets[self._pair_k]))
-        dofs = (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], 3 * verts.shape[1])
-        out = {"energy": energy, "grad": grad, "hess": hess, "dofs": dofs, "verts": verts}
+            pa, pk = self._pair_a, self._pair_k
+        verts = pairs.pair_vertices(s, self.integration, pa, pk)
+        out = {"energy": energy, "grad": grad, "hess": hess, "verts": verts}
         if self.integration == "area":
             out["active"] = active
         self._cache[key] = out
@@ -336,13 +191,7 @@ class ContactOperator:
     def gradient_array(self) -> tuple[np.ndarray, np.ndarray]:
         """This rank's gradient contributions: (global dofs, values), duplicates summed."""
         r = self._evaluate(True, False)
-        dofs, vals = r["dofs"].ravel(), r["grad"].ravel()
-        # summed over the global dofs (linear in the mesh, no sort of the pair entries)
-        n = 3 * self.num_vertices
-        reached = np.zeros(n, dtype=bool)
-        reached[dofs] = True
-        uniq = np.flatnonzero(reached).astype(INDEX)
-        return uniq, np.bincount(dofs, weights=vals, minlength=n)[uniq]
+        return assembly.gradient_array(self.surface, r["verts"], r["grad"])
 
     def add_residual(self, b: PETSc.Vec) -> None:
         """``b += dE/du`` for a dolfinx-assembled residual vector (collective).
@@ -357,13 +206,15 @@ class ContactOperator:
         b.assemblyEnd()
 
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
-        """Remember the Dirichlet dofs, whose rows and columns :meth:`add_jacobian` skips."""
-        mask_local = np.zeros(3 * self._n_owned, dtype=bool)
+        """Remember the Dirichlet dofs, whose rows and columns :meth:`add_jacobian` skips
+        (collective)."""
+        n = self.surface.owned_dof_count()
+        mask_local = np.zeros(n, dtype=bool)
         for bc in bcs:
             dofs, n_owned = bc.dof_indices()
             dofs = np.asarray(dofs[:n_owned], dtype=INDEX)
-            mask_local[dofs[dofs < 3 * self._n_owned]] = True
-        self._bc_mask = _allgather_rows(self.comm, mask_local)
+            mask_local[dofs[dofs < n]] = True
+        self.surface.set_bcs(mask_local)
 
     def hessian_coo(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This rank's Hessian contributions (rows, cols, values), duplicates summed, sorted.
@@ -373,16 +224,13 @@ class ContactOperator:
         pattern of :meth:`create_matrix` instead.
         """
         r = self._evaluate(False, True)
-        dofs = r["dofs"]
-        n = dofs.shape[1]
-        rows = np.repeat(dofs, n, axis=1).ravel()
-        cols = np.tile(dofs, (1, n)).ravel()
-        vals = r["hess"].reshape(-1)
-        keep = ~(self._bc_mask[rows] | self._bc_mask[cols])
-        key = rows[keep] * (3 * self.num_vertices) + cols[keep]
-        uniq, inv = np.unique(key, return_inverse=True)
-        sums = np.bincount(inv, weights=vals[keep], minlength=uniq.size)
-        return uniq // (3 * self.num_vertices), uniq % (3 * self.num_vertices), sums
+        return assembly.hessian_coo(self.surface, r["verts"], r["hess"])
+
+    def _pattern_in_held_numbering(self) -> np.ndarray:
+        if self._held_keys is None:
+            keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
+            self._held_keys = assembly.held_keys(self.surface, keys)
+        return self._held_keys
 
     @announces_compilation("the contact Jacobian assembly")
     def add_jacobian(
@@ -401,15 +249,8 @@ class ContactOperator:
         if bcs is not None:
             self.set_bcs(bcs)
         r = self._evaluate(False, True)
-        # Pair Hessians are summed by numba into 3 x 3 blocks of the pattern's vertex couplings
-        # (a binary search per coupling, no sort of the pairs' 441 entries each), and only the
-        # blocks that pairs reach are inserted.
-        keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
-        blocks = np.zeros((keys.size, 3, 3), dtype=FLOAT)
-        touched = np.zeros(keys.size, dtype=bool)
-        missing = _accumulate_vertex_blocks(
-            keys, self.num_vertices, r["verts"], r["hess"], self._bc_mask, blocks, touched
-        )
+        keys = self._pattern_in_held_numbering()
+        missing = assembly.add_jacobian_blocks(A, self.surface, keys, r["verts"], r["hess"])
         if "pattern_missing" not in self._cache:
             self._cache["pattern_missing"] = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
         if self._cache["pattern_missing"]:
@@ -418,21 +259,9 @@ class ContactOperator:
                 "create_matrix(a) again (ContactProblem does this automatically), or build the "
                 "operator with a larger margin"
             )
-        rows, indptr, cols, vals = _blocks_to_csr(keys, self.num_vertices, blocks, touched)
-        if rows.size:
-            A.setValuesIJV(
-                indptr.astype(PETSc.IntType), cols.astype(PETSc.IntType), vals,
-                addv=PETSc.InsertMode.ADD_VALUES, rowmap=rows.astype(PETSc.IntType),
-            )  # fmt: skip
         A.assemble()
 
     # -- sparsity ---------------------------------------------------------------------------
-
-    def _vertex_coupling_keys(self, verts: np.ndarray) -> np.ndarray:
-        n = verts.shape[1]
-        a = np.repeat(verts, n, axis=1).ravel()
-        b = np.tile(verts, (1, n)).ravel()
-        return np.unique(a * self.num_vertices + b)
 
     def pattern_needs_rebuild(self) -> bool:
         """Whether a current contact coupling lies outside the pattern (collective).
@@ -446,7 +275,8 @@ class ContactOperator:
         if self._pattern_keys is None:
             missing = verts.size > 0
         else:
-            missing = _count_missing_couplings(self._pattern_keys, self.num_vertices, verts) > 0
+            keys = self._pattern_in_held_numbering()
+            missing = assembly.missing_couplings(self.surface, keys, verts) > 0
         self._cache["pattern_missing"] = bool(self.comm.allreduce(missing, op=MPI.LOR))
         return self._cache["pattern_missing"]
 
@@ -461,59 +291,10 @@ class ContactOperator:
         Args:
             a: the compiled bulk Jacobian form (``dolfinx.fem.form``).
         """
-        from dolfinx.fem.petsc import assemble_matrix, create_matrix
-
-        bulk = create_matrix(a)
-        assemble_matrix(bulk, a)
-        bulk.assemble()
-        indptr, indices, _ = bulk.getValuesCSR()
-        r0, r1 = bulk.getOwnershipRange()
-        bulk_rows = np.repeat(np.arange(r0, r1, dtype=INDEX), np.diff(indptr))
-
-        pa, pk = self._candidate_pairs(self.margin)
-        if self.integration == "area":
-            # boxes inflated by the margin overlap for far more pairs than come within the
-            # margin (7x more than the active pairs on a flat interface); the couplings of the
-            # others would be explicit zeros that the factorisation treats as nonzeros
-            pa, pk = _near_pairs(self._x, self._tri, self._tets, pa, pk, self.margin)
-            verts = np.hstack((self._tri[pa], self._tets[pk]))
-        else:
-            verts = np.hstack((self._nodes[pa, None], self._tets[pk]))
-        self._pattern_keys = self._vertex_coupling_keys(verts)
+        self._pattern_keys = pairs.pattern_keys(self.surface, self.integration, self.margin)
+        self._held_keys = None
         self._cache.pop("pattern_missing", None)
-        vi = self._pattern_keys // self.num_vertices
-        vj = self._pattern_keys % self.num_vertices
-        # Each vertex coupling (vi, vj) is a 3 x 3 block of dofs.
-        rows = np.repeat(3 * vi[:, None] + np.arange(3), 3, axis=1).ravel()
-        cols = np.tile(3 * vj[:, None] + np.arange(3), (1, 3)).ravel()
-
-        # Send each contact entry to the rank owning its row.
-        ranges = np.asarray(self.comm.allgather(r1), dtype=INDEX)
-        owner = np.searchsorted(ranges, rows, side="right")
-        order = np.argsort(owner, kind="stable")
-        counts = np.bincount(owner, minlength=self.comm.size)
-        splits = np.cumsum(counts)[:-1]
-        send = [
-            np.vstack(p)
-            for p in zip(np.split(rows[order], splits), np.split(cols[order], splits), strict=True)
-        ]
-        recv = self.comm.alltoall(send)
-        all_rows = np.concatenate([bulk_rows] + [m[0] for m in recv])
-        all_cols = np.concatenate([indices.astype(INDEX)] + [m[1] for m in recv])
-        n_global = 3 * self.num_vertices
-        key = np.unique(all_rows * n_global + all_cols)
-        rows_u, cols_u = key // n_global, key % n_global
-        csr_ptr = np.searchsorted(rows_u, np.arange(r0, r1 + 1)).astype(PETSc.IntType)
-
-        A = PETSc.Mat().create(comm=self.comm)
-        A.setSizes(bulk.getSizes(), bsize=3)
-        A.setType(PETSc.Mat.Type.AIJ)
-        A.setPreallocationCSR((csr_ptr, cols_u.astype(PETSc.IntType)))
-        A.setLGMap(*bulk.getLGMap())
-        A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
-        A.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
-        bulk.destroy()
-        return A
+        return assembly.create_matrix(self.comm, a, self._pattern_keys, self.num_vertices)
 
     # -- diagnostics ------------------------------------------------------------------------
 
@@ -525,14 +306,15 @@ class ContactOperator:
         (collective).
         """
         r = self._evaluate(False, False)
+        s = self.surface
         if self.integration == "area":
             active = r["active"]
             g = _area_pairs_max_depth(
-                self._x, self._kernel_depth, self._tri, self._kernel_tets, self._pair_a[active],
+                s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
                 self._pair_k[active],
             )  # fmt: skip
         else:
-            w = self._weight[self._nodes[self._pair_a]]
+            w = s.weight[s.nodes[self._pair_a]]
             g = np.sqrt(2.0 * r["energy"] / (self.penalty * w))
         local = float(g.max()) if g.size else 0.0
         return self.comm.allreduce(local, op=MPI.MAX)
@@ -544,9 +326,13 @@ class ContactOperator:
         vertex is ``-dE/dx``; contact between two bodies gives them opposite resultants, and
         self-contact contributes nothing to its body's resultant.
         """
-        dofs, vals = self.gradient_array()
+        r = self._evaluate(True, False)
+        verts = r["verts"]
         out = np.zeros((self.num_bodies, 3), dtype=FLOAT)
-        np.add.at(out, (self.body_of_vertex[dofs // 3], dofs % 3), -vals)
+        if verts.size:
+            body = np.repeat(self.surface.body[verts.ravel()], 3)
+            comp = np.tile(np.arange(3), verts.size)
+            np.add.at(out, (body, comp), -r["grad"].ravel())
         return self.comm.allreduce(out)
 
     def diagnostics(self) -> dict[str, typing.Any]:
@@ -555,11 +341,15 @@ class ContactOperator:
         Returns:
             ``candidate_pairs`` and ``active_pairs`` (global counts; active = non-zero
             energy), ``energy`` (F L), ``max_penetration`` (L, see :meth:`max_penetration`),
-            ``force_resultant``, the net contact force on each body, ``(num_bodies, 3)``, and
-            the depth-deficient tetrahedra (all four vertices at depth 0): their number
+            ``force_resultant``, the net contact force on each body, ``(num_bodies, 3)``, the
+            depth-deficient tetrahedra (all four vertices at depth 0): their number
             ``deficient_tets``, the number of tetrahedra touching the boundary
             ``boundary_adjacent_tets``, the ratio ``deficient_fraction`` and ``split_tets``,
-            how many the operator splits around their centroid (see ``split_deficient``).
+            how many the operator splits around their centroid (see ``split_deficient``),
+            and what this rank holds and sends (counts on this rank, see
+            :meth:`fenics_matdepth.contact.surface.ContactSurface.sizes`): ``held_vertices``
+            and ``held_tets`` (owned plus halo), ``halo_tets``, ``neighbours``,
+            ``update_bytes_sent`` and ``halo_refreshes``.
         """
         r = self._evaluate(True, False)
         return {
@@ -572,19 +362,8 @@ class ContactOperator:
             "energy": self.energy(),
             "max_penetration": self.max_penetration(),
             "force_resultant": self.force_resultants(),
+            **self.surface.sizes(),
         }
-
-
-def _connected_components(num_vertices: int, tets: np.ndarray) -> tuple[int, np.ndarray]:
-    """Label the vertices by connected component of the tetrahedral mesh."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    a = np.repeat(tets[:, 0], 3)
-    b = tets[:, 1:].ravel()
-    graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(num_vertices,) * 2)
-    n, labels = connected_components(graph, directed=False)
-    return int(n), labels.astype(INDEX)
 
 
 def propose_penalty(
@@ -619,7 +398,7 @@ def propose_penalty(
     Returns:
         The proposed penalty (collective).
     """
-    from fenics_matdepth.depth import boundary_triangles
+    from fenics_matdepth.boundary import boundary_triangles
 
     modulus, factor = float(modulus), float(factor)
     if not (np.isfinite(modulus) and modulus > 0.0 and np.isfinite(factor) and factor > 0.0):

@@ -1,0 +1,28 @@
+"""Small MPI helpers shared by the modules (numpy rows over mpi4py)."""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+from mpi4py.util.dtlib import from_numpy_dtype
+
+import numpy as np
+
+__all__ = ["allgather_rows"]
+
+
+def allgather_rows(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
+    """Concatenate the ranks' row blocks of ``local`` (rank order) on every rank (collective).
+
+    Args:
+        comm: the communicator.
+        local: (n, ...) this rank's rows; the trailing shape and dtype agree on all ranks.
+
+    Returns:
+        (sum of n, ...) the rows of rank 0, then rank 1, and so on.
+    """
+    local = np.ascontiguousarray(local)
+    width = int(np.prod(local.shape[1:], dtype=np.int64))
+    counts = np.asarray(comm.allgather(local.shape[0] * width), dtype=np.int64)
+    out = np.empty(int(counts.sum()), dtype=local.dtype)
+    comm.Allgatherv(local.reshape(-1), [out, counts, from_numpy_dtype(local.dtype)])
+    return out.reshape((-1, *local.shape[1:]))

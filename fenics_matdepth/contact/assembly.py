@@ -1,0 +1,191 @@
+"""Assembly of the pairs' derivatives into dolfinx-made PETSc vectors and matrices.
+
+The pair kernels give energies, gradients and Hessians over the pairs' held vertices (see
+:mod:`fenics_matdepth.contact.surface`); here they are summed per dof, mapped to the global
+dof numbering (``3 v + c`` for component c of global vertex v) and added with PETSc's
+off-process assembly, which sends contributions to dofs owned by other ranks.
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import dolfinx
+import numpy as np
+
+from fenics_matdepth._constants import FLOAT, INDEX
+from fenics_matdepth.contact.kernels import (
+    _accumulate_vertex_blocks,
+    _blocks_to_csr,
+    _count_missing_couplings,
+)
+from fenics_matdepth.contact.surface import ContactSurface
+
+__all__ = [
+    "add_jacobian_blocks",
+    "create_matrix",
+    "global_dofs",
+    "gradient_array",
+    "held_keys",
+    "hessian_coo",
+    "missing_couplings",
+]
+
+
+def global_dofs(surface: ContactSurface, held_dofs: np.ndarray) -> np.ndarray:
+    """Global dof numbers of held dofs ``3 h + c``."""
+    held_dofs = np.asarray(held_dofs, dtype=INDEX)
+    return 3 * surface.global_vertex[held_dofs // 3] + held_dofs % 3
+
+
+def _pair_dofs(verts: np.ndarray) -> np.ndarray:
+    """(n, 3 m) held dofs of pairs over (n, m) held vertices, xyz interleaved."""
+    return (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], 3 * verts.shape[1])
+
+
+def gradient_array(
+    surface: ContactSurface, verts: np.ndarray, grad: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """This rank's gradient contributions: (global dofs, values), duplicates summed.
+
+    Args:
+        surface: what the rank holds.
+        verts: (n, m) held vertices of the pairs.
+        grad: (n, 3 m) pair gradients.
+    """
+    dofs = _pair_dofs(verts).ravel()
+    # summed over the held dofs (linear in what the rank holds, no sort of the pair entries)
+    n = 3 * surface.num_held
+    reached = np.zeros(n, dtype=bool)
+    reached[dofs] = True
+    uniq = np.flatnonzero(reached).astype(INDEX)
+    vals = np.bincount(dofs, weights=grad.ravel(), minlength=n)[uniq]
+    glob = global_dofs(surface, uniq)
+    order = np.argsort(glob)
+    return glob[order], vals[order]
+
+
+def hessian_coo(
+    surface: ContactSurface, verts: np.ndarray, hess: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """This rank's Hessian contributions (global rows, cols, values), duplicates summed,
+    sorted; entries in a Dirichlet row or column left out."""
+    dofs = _pair_dofs(verts)
+    n = dofs.shape[1]
+    rows = np.repeat(dofs, n, axis=1).ravel()
+    cols = np.tile(dofs, (1, n)).ravel()
+    keep = ~(surface.bc[rows] | surface.bc[cols])
+    rows, cols = global_dofs(surface, rows[keep]), global_dofs(surface, cols[keep])
+    n_global = 3 * surface.num_vertices
+    uniq, inv = np.unique(rows * n_global + cols, return_inverse=True)
+    sums = np.bincount(inv, weights=hess.reshape(-1)[keep], minlength=uniq.size)
+    return uniq // n_global, uniq % n_global, sums
+
+
+def held_keys(surface: ContactSurface, keys: np.ndarray) -> np.ndarray:
+    """Global vertex-coupling keys in the held numbering (sorted; couplings of vertices the
+    rank does not hold are dropped: no pair of the rank reaches them)."""
+    nv = surface.num_vertices
+    hi = surface.held_index(keys // nv)
+    hj = surface.held_index(keys % nv)
+    ok = (hi >= 0) & (hj >= 0)
+    return np.unique(hi[ok] * surface.num_held + hj[ok])
+
+
+def missing_couplings(surface: ContactSurface, keys: np.ndarray, verts: np.ndarray) -> int:
+    """Number of pair vertex couplings not in the held-numbered pattern ``keys``."""
+    return int(_count_missing_couplings(keys, surface.num_held, verts))
+
+
+def add_jacobian_blocks(
+    A: PETSc.Mat, surface: ContactSurface, keys: np.ndarray, verts: np.ndarray, hess: np.ndarray
+) -> int:
+    """Add the pair Hessians into ``A`` (not assembled here), Dirichlet rows/columns skipped.
+
+    Pair Hessians are summed by numba into 3 x 3 blocks of the pattern's vertex couplings
+    (a binary search per coupling, no sort of the pairs' 441 entries each), and only the
+    blocks that pairs reach are inserted.
+
+    Args:
+        A: the matrix.
+        surface: what the rank holds.
+        keys: sorted held-numbered coupling keys of the pattern (:func:`held_keys`).
+        verts: (n, m) held vertices of the pairs.
+        hess: (n, 3 m, 3 m) pair Hessians.
+
+    Returns:
+        The number of couplings outside ``keys`` (left out).
+    """
+    nh = surface.num_held
+    blocks = np.zeros((keys.size, 3, 3), dtype=FLOAT)
+    touched = np.zeros(keys.size, dtype=bool)
+    missing = _accumulate_vertex_blocks(keys, nh, verts, hess, surface.bc, blocks, touched)
+    rows, indptr, cols, vals = _blocks_to_csr(keys, nh, blocks, touched)
+    if rows.size:
+        A.setValuesIJV(
+            indptr.astype(PETSc.IntType),
+            global_dofs(surface, cols).astype(PETSc.IntType),
+            vals,
+            addv=PETSc.InsertMode.ADD_VALUES,
+            rowmap=global_dofs(surface, rows).astype(PETSc.IntType),
+        )
+    return int(missing)
+
+
+def create_matrix(comm: MPI.Comm, a: dolfinx.fem.Form, keys: np.ndarray, num_vertices: int):
+    """A PETSc matrix holding the bulk form's pattern plus the contact vertex couplings.
+
+    Args:
+        comm: the mesh communicator.
+        a: the compiled bulk Jacobian form.
+        keys: this rank's global vertex-coupling keys ``vi * num_vertices + vj``.
+        num_vertices: global number of vertices.
+
+    Returns:
+        An AIJ matrix (block size 3) preallocated exactly, in which insertion never mallocs
+        (collective).
+    """
+    from dolfinx.fem.petsc import assemble_matrix
+    from dolfinx.fem.petsc import create_matrix as dolfinx_create_matrix
+
+    bulk = dolfinx_create_matrix(a)
+    assemble_matrix(bulk, a)
+    bulk.assemble()
+    indptr, indices, _ = bulk.getValuesCSR()
+    r0, r1 = bulk.getOwnershipRange()
+    bulk_rows = np.repeat(np.arange(r0, r1, dtype=INDEX), np.diff(indptr))
+
+    vi = keys // num_vertices
+    vj = keys % num_vertices
+    # Each vertex coupling (vi, vj) is a 3 x 3 block of dofs.
+    rows = np.repeat(3 * vi[:, None] + np.arange(3), 3, axis=1).ravel()
+    cols = np.tile(3 * vj[:, None] + np.arange(3), (1, 3)).ravel()
+
+    # Send each contact entry to the rank owning its row.
+    ranges = np.asarray(comm.allgather(r1), dtype=INDEX)
+    owner = np.searchsorted(ranges, rows, side="right")
+    order = np.argsort(owner, kind="stable")
+    counts = np.bincount(owner, minlength=comm.size)
+    splits = np.cumsum(counts)[:-1]
+    send = [
+        np.vstack(p)
+        for p in zip(np.split(rows[order], splits), np.split(cols[order], splits), strict=True)
+    ]
+    recv = comm.alltoall(send)
+    all_rows = np.concatenate([bulk_rows] + [m[0] for m in recv])
+    all_cols = np.concatenate([indices.astype(INDEX)] + [m[1] for m in recv])
+    n_global = 3 * num_vertices
+    key = np.unique(all_rows * n_global + all_cols)
+    rows_u, cols_u = key // n_global, key % n_global
+    csr_ptr = np.searchsorted(rows_u, np.arange(r0, r1 + 1)).astype(PETSc.IntType)
+
+    A = PETSc.Mat().create(comm=comm)
+    A.setSizes(bulk.getSizes(), bsize=3)
+    A.setType(PETSc.Mat.Type.AIJ)
+    A.setPreallocationCSR((csr_ptr, cols_u.astype(PETSc.IntType)))
+    A.setLGMap(*bulk.getLGMap())
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+    A.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
+    bulk.destroy()
+    return A
