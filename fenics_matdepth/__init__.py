@@ -12,6 +12,7 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from fenics_matdepth import checkpoint, contact, geometry, kinematics, materials
+from fenics_matdepth.augmented import AugmentedLagrangian, UzawaUpdate
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import depth_deficiency, material_depth
@@ -27,6 +28,7 @@ from fenics_matdepth.solvers import (
 )
 
 __all__ = [
+    "AugmentedLagrangian",
     "BackwardEuler",
     "Checkpoint",
     "ContactAssembler",
@@ -38,6 +40,7 @@ __all__ = [
     "RigidRotation",
     "SolveResult",
     "TimeStep",
+    "UzawaUpdate",
     "__version__",
     "checkpoint",
     "contact",

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from test_kernels import fd_derivatives, random_configs, rel_err, split
+from test_validation import PATCH_PRESSURE, _report, _solve_patch
 
 from fenics_matdepth.contact.kernels import (
     augmented_pair_energy,
@@ -131,3 +132,42 @@ def test_pressure_moments():
             assert slope == pytest.approx(gmom[i], rel=1e-8)
         area = 2.0 * pair_energy(x_tri, x_tet, np.ones(4), EPS)[0] / EPS
         assert amom.sum() == pytest.approx(area, rel=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# Uzawa driver: the contact patch test (tests/test_validation.py) with a soft penalty
+# ------------------------------------------------------------------------------------------
+
+
+def test_patch_augmented_lagrangian():
+    """A soft penalty (eps h / E ~ 1.4) leaves an overlap of p / (2 eps) and a pressure a few %
+    off uniform; the augmented Lagrangian brings the overlap below the tolerance everywhere
+    (``max_penetration``: over every intersection polygon, the footprint's edges included) and
+    the pressure to uniform within 1 % over every column of the upper mesh."""
+    penalty = 10.0
+    plain = _solve_patch(penalty)
+    tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)  # 10 % of the penalty's overlap
+    out = _solve_patch(penalty, augmented={"tol": tol, "max_updates": 10})
+    solver = out["solver"]
+    p = PATCH_PRESSURE
+    diag = solver.diagnostics()
+    overlap_plain = plain["contact"].max_penetration()
+    _report(
+        f"\npatch, eps = {penalty}: penalty overlap {overlap_plain:.3e}, columns "
+        f"[{plain['pressure'].min() / p:.4f}, {plain['pressure'].max() / p:.4f}] p, "
+        f"{plain['iterations']} Newton it; augmented: {diag['updates']} updates, "
+        f"{diag['newton_iterations']} Newton it, overlap {diag['overlap']:.3e} "
+        f"({diag['overlap_tol']:.2f} tol, {diag['overlap_h']:.2e} h), columns "
+        f"[{out['pressure'].min() / p:.5f}, {out['pressure'].max() / p:.5f}] p, "
+        f"interior [{out['interior_pressure'].min() / p:.5f}, "
+        f"{out['interior_pressure'].max() / p:.5f}]"
+    )
+    for r in solver.history:
+        _report(f"  {r}")
+    assert diag["overlap"] <= tol
+    assert out["contact"].max_penetration() <= tol
+    assert overlap_plain > 10 * tol  # the penalty alone is far off
+    assert out["total_force"] == pytest.approx(p, rel=1e-6)
+    assert np.all(np.abs(out["pressure"] / p - 1.0) < 0.01)
+    # the multipliers carry the load: nodal pressures near p on each surface's share
+    assert diag["updates"] >= 1

@@ -269,7 +269,9 @@ PATCH_LOWER_N, PATCH_UPPER_N = 8, 7
 PATCH_YOUNGS, PATCH_POISSON, PATCH_PRESSURE = 1.0, 0.3, 0.01
 
 
-def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-8) -> dict:
+def _solve_patch(
+    penalty: float, split_deficient: bool = True, rtol: float = 1e-8, augmented: dict | None = None
+) -> dict:
     """Uniform dead pressure on the upper cube's top face; returns interior measurements.
 
     Rollers: u_z = 0 on the lower cube's bottom, u_x = 0 on x = 0 and u_y = 0 on y = 0 (both
@@ -328,7 +330,8 @@ def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-
         residual, u, contact, bcs=bcs, energy=energy,
         petsc_options={**NEWTON_OPTIONS, "snes_rtol": rtol},
     )  # fmt: skip
-    result = problem.solve()
+    solver = fm.AugmentedLagrangian(problem, **augmented) if augmented is not None else problem
+    result = solver.solve()
     assert result.converged
 
     num_vertices = V.dofmap.index_map.size_global
@@ -368,6 +371,8 @@ def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-
     mid = ~upper & np.isclose(X[:, 2], 0.5) & (X[:, 0] > 0.5)
     stretch_x = 1.0 + np.mean(U[mid, 0] / X[mid, 0])
     return {
+        "solver": solver,
+        "contact": contact,
         "num_cells": mesh.topology.index_map(3).size_global,
         "iterations": result.iterations,
         "total_force": float(np.sum(force[upper, 2])),
