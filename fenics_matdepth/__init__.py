@@ -12,7 +12,12 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from fenics_matdepth import checkpoint, contact, geometry, kinematics, materials
-from fenics_matdepth.augmented import AugmentedLagrangian, UzawaUpdate
+from fenics_matdepth.augmented import (
+    AugmentedLagrangian,
+    RigidModeDamping,
+    UzawaUpdate,
+    damping_energy,
+)
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import depth_deficiency, material_depth
@@ -37,6 +42,7 @@ __all__ = [
     "LoadStep",
     "Newmark",
     "NonlinearContactProblem",
+    "RigidModeDamping",
     "RigidRotation",
     "SolveResult",
     "TimeStep",
@@ -44,6 +50,7 @@ __all__ = [
     "__version__",
     "checkpoint",
     "contact",
+    "damping_energy",
     "depth_deficiency",
     "geometry",
     "kinematics",

@@ -37,12 +37,14 @@ import contextlib
 import dataclasses
 import typing
 
+from mpi4py import MPI
+
 import numpy as np
 
 from fenics_matdepth.depth import boundary_triangles
 from fenics_matdepth.solvers import SolveResult
 
-__all__ = ["AugmentedLagrangian", "UzawaUpdate"]
+__all__ = ["AugmentedLagrangian", "RigidModeDamping", "UzawaUpdate", "damping_energy"]
 
 #: A failed inner solve after a pressure update is retried with the update halved, at most
 #: this many times.
@@ -116,7 +118,7 @@ class AugmentedLagrangian:
         max_updates: int = 20,
         h: float | None = None,
         relaxation: float = 0.5,
-        inner_rtol: float = 1e-7,
+        inner_rtol: float = 1e-6,
     ):
         contact = problem.contact
         if contact.integration != "area":
@@ -295,3 +297,113 @@ class AugmentedLagrangian:
             "max_pressure": float(np.max(self.pressure, initial=0.0)),
             "pressure_change": self.history[-2].pressure_change if len(self.history) > 1 else 0.0,
         }
+
+
+def damping_energy(
+    u: typing.Any, measure: typing.Any, stiffness: float
+) -> tuple[typing.Any, typing.Any, typing.Any]:
+    """The proximal term ``(k / 2) int |u - u_anchor|^2`` for :class:`RigidModeDamping`.
+
+    Add the returned form to the energy (and its derivative to the residual) of a problem with
+    a body held only by contact.
+
+    Args:
+        u: the displacement Function.
+        measure: where to damp, e.g. ``dx(free_body_tag)`` (or ``ufl.dx``).
+        stiffness: k (force / length^4: a body force per unit displacement); a body force
+            ``f`` then moves a free body by about ``f / k`` per proximal step.
+
+    Returns:
+        ``(energy_term, k, anchor)``: the UFL form, the ``Constant`` k and the anchor Function,
+        to pass to :class:`RigidModeDamping`.
+    """
+    from petsc4py import PETSc
+
+    import dolfinx
+    import ufl
+
+    anchor = dolfinx.fem.Function(u.function_space, name="anchor")
+    k = dolfinx.fem.Constant(u.function_space.mesh, PETSc.ScalarType(stiffness))
+    return 0.5 * k * ufl.inner(u - anchor, u - anchor) * measure, k, anchor
+
+
+class RigidModeDamping:
+    """Proximal-point solves for bodies that are free until contact engages.
+
+    A body held only by contact (a floating body under a body force, a body pushed by forces
+    before it touches) has a rigid-body mode with no stiffness until the contact zone has
+    grown: Newton's matrix is singular or nearly so, and the first solve of the first load step
+    diverges. The problem's energy gets the term ``(k / 2) int |u - u_anchor|^2`` (from
+    :func:`damping_energy`): with the anchor at the current state each solve is well posed and
+    moves a free body by about ``f / k``; the anchor then moves to the solution and the solve
+    repeats (proximal point iteration) until a solve changes ``u`` by less than ``rtol`` times
+    the whole change of this call. Then ``k`` is set to 0 and a last solve, from that nearly
+    balanced state, removes the remaining damping force: the result solves the undamped
+    problem.
+
+    Args:
+        problem: a contact problem whose energy and residual include the damping term.
+        stiffness: the ``Constant`` k of :func:`damping_energy` (its value is the k used).
+        anchor: the anchor Function of :func:`damping_energy`.
+        rtol: stop the damped solves when the last one moved ``u`` by less than this fraction
+            of the total change (max norm).
+        max_solves: damped solves at most.
+    """
+
+    def __init__(self, problem: _Problem, stiffness, anchor, rtol: float = 1e-2, max_solves=50):
+        self.problem = problem
+        self.u = problem.u
+        self.contact = problem.contact
+        self._k = stiffness
+        self.stiffness = float(stiffness.value)
+        self.anchor = anchor
+        self.rtol = float(rtol)
+        self.max_solves = int(max_solves)
+        #: damped solves in the last :meth:`solve`
+        self.damped_solves = 0
+
+    @property
+    def snes(self):
+        """The wrapped problem's SNES (if any)."""
+        return getattr(self.problem, "snes", None)
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult:
+        """Damped solves until ``u`` settles, then one undamped solve (collective)."""
+        comm = self.u.function_space.mesh.comm
+        start = self.u.x.array.copy()
+        iterations, rejected, norms = 0, 0, []
+        self._k.value = self.stiffness
+        self.damped_solves = 0
+        result = None
+        try:
+            for _ in range(self.max_solves):
+                self.anchor.x.array[:] = self.u.x.array
+                result = self.problem.solve(raise_on_failure=False)
+                self.damped_solves += 1
+                iterations += result.iterations
+                rejected += result.rejected_states
+                norms.append(np.asarray(result.residual_norms))
+                if not result.converged:
+                    break
+                local = self.u.x.array
+                step = comm.allreduce(
+                    float(np.max(np.abs(local - self.anchor.x.array))), op=MPI.MAX
+                )
+                total = comm.allreduce(float(np.max(np.abs(local - start))), op=MPI.MAX)
+                if step <= self.rtol * total:
+                    break
+            if result is not None and result.converged:
+                self._k.value = 0.0
+                result = self.problem.solve(raise_on_failure=False)
+                iterations += result.iterations
+                rejected += result.rejected_states
+                norms.append(np.asarray(result.residual_norms))
+        finally:
+            self._k.value = 0.0
+        out = SolveResult(
+            result.converged, result.reason, iterations, np.concatenate(norms), rejected,
+            result.min_det_F,
+        )  # fmt: skip
+        if raise_on_failure and not out.converged:
+            raise RuntimeError(out.failure_message())
+        return out
