@@ -58,6 +58,37 @@ class _Problem(typing.Protocol):
     def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
 
 
+@contextlib.contextmanager
+def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
+    """While solving again after a first solve (after a pressure update, or a damped solve),
+    add an absolute Newton tolerance: ``inner_rtol`` times the first solve's initial residual.
+
+    After an update the solve starts close to its solution, and a tolerance relative to
+    that small initial residual falls below the residual's rounding floor (measured on the
+    patch test with snes_rtol 1e-8: the solves after updates stalled between 1.2e-11 and
+    3.9e-11 for relative targets of 4e-12 and below, while the first solve had started at
+    2.2e-3)."""
+    snes = getattr(problem, "snes", None)
+    newton = getattr(problem, "_solver", None)
+    if first_norm is None or (snes is None and newton is None):
+        yield
+        return
+    if snes is not None:
+        rtol, atol, stol, max_it = snes.getTolerances()
+        snes.setTolerances(atol=max(atol, inner_rtol * first_norm))
+        try:
+            yield
+        finally:
+            snes.setTolerances(rtol=rtol, atol=atol, stol=stol, max_it=max_it)
+    else:
+        atol = newton.atol
+        newton.atol = max(atol, inner_rtol * first_norm)
+        try:
+            yield
+        finally:
+            newton.atol = atol
+
+
 @dataclasses.dataclass
 class UzawaUpdate:
     """One inner solve of :class:`AugmentedLagrangian` and the pressure update after it.
@@ -174,35 +205,9 @@ class AugmentedLagrangian:
         self._set(new)
         return change
 
-    @contextlib.contextmanager
     def _absolute_tolerance(self, first_norm: float | None):
-        """While solving after a pressure update, add an absolute Newton tolerance:
-        ``inner_rtol`` times the initial residual of the first solve of this :meth:`solve`.
-
-        After an update the solve starts close to its solution, and a tolerance relative to
-        that small initial residual falls below the residual's rounding floor (measured on the
-        patch test with snes_rtol 1e-8: the solves after updates stalled between 1.2e-11 and
-        3.9e-11 for relative targets of 4e-12 and below, while the first solve had started at
-        2.2e-3)."""
-        snes = getattr(self.problem, "snes", None)
-        newton = getattr(self.problem, "_solver", None)
-        if first_norm is None or (snes is None and newton is None):
-            yield
-            return
-        if snes is not None:
-            rtol, atol, stol, max_it = snes.getTolerances()
-            snes.setTolerances(atol=max(atol, self.inner_rtol * first_norm))
-            try:
-                yield
-            finally:
-                snes.setTolerances(rtol=rtol, atol=atol, stol=stol, max_it=max_it)
-        else:
-            atol = newton.atol
-            newton.atol = max(atol, self.inner_rtol * first_norm)
-            try:
-                yield
-            finally:
-                newton.atol = atol
+        """See :func:`_absolute_tolerance`."""
+        return _absolute_tolerance(self.problem, first_norm, self.inner_rtol)
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Newton solves and pressure updates until the overlap is within the tolerance.
@@ -336,10 +341,12 @@ class RigidModeDamping:
     diverges. The problem's energy gets the term ``(k / 2) int |u - u_anchor|^2`` (from
     :func:`damping_energy`): with the anchor at the current state each solve is well posed and
     moves a free body by about ``f / k``; the anchor then moves to the solution and the solve
-    repeats (proximal point iteration) until a solve changes ``u`` by less than ``rtol`` times
-    the whole change of this call. Then ``k`` is set to 0 and a last solve, from that nearly
-    balanced state, removes the remaining damping force: the result solves the undamped
-    problem.
+    repeats with ``k`` divided by ``1 / decrease`` (proximal point iteration with a falling
+    stiffness: the first solve moves a free body little, the later ones let contact, which has
+    engaged meanwhile, carry it) until a solve changes ``u`` by less than ``rtol`` times the
+    whole change of this call or ``k`` has fallen below ``1e-6`` of its start. Then ``k`` is set
+    to 0 and a last solve, from that nearly balanced state, removes the remaining damping
+    force: the result solves the undamped problem.
 
     Args:
         problem: a contact problem whose energy and residual include the damping term.
@@ -348,9 +355,21 @@ class RigidModeDamping:
         rtol: stop the damped solves when the last one moved ``u`` by less than this fraction
             of the total change (max norm).
         max_solves: damped solves at most.
+        decrease: factor on k from one damped solve to the next, in (0, 1].
+        inner_rtol: the solves after the first stop at this fraction of the first solve's
+            initial residual at the latest (see :class:`AugmentedLagrangian`).
     """
 
-    def __init__(self, problem: _Problem, stiffness, anchor, rtol: float = 1e-2, max_solves=50):
+    def __init__(
+        self,
+        problem: _Problem,
+        stiffness,
+        anchor,
+        rtol: float = 1e-2,
+        max_solves: int = 20,
+        decrease: float = 0.1,
+        inner_rtol: float = 1e-6,
+    ):
         self.problem = problem
         self.u = problem.u
         self.contact = problem.contact
@@ -359,6 +378,8 @@ class RigidModeDamping:
         self.anchor = anchor
         self.rtol = float(rtol)
         self.max_solves = int(max_solves)
+        self.decrease = float(decrease)
+        self.inner_rtol = float(inner_rtol)
         #: damped solves in the last :meth:`solve`
         self.damped_solves = 0
 
@@ -375,10 +396,15 @@ class RigidModeDamping:
         self._k.value = self.stiffness
         self.damped_solves = 0
         result = None
+        first_norm = None
         try:
-            for _ in range(self.max_solves):
+            for j in range(self.max_solves):
+                self._k.value = self.stiffness * self.decrease**j
                 self.anchor.x.array[:] = self.u.x.array
-                result = self.problem.solve(raise_on_failure=False)
+                with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
+                    result = self.problem.solve(raise_on_failure=False)
+                if first_norm is None and len(result.residual_norms):
+                    first_norm = float(result.residual_norms[0])
                 self.damped_solves += 1
                 iterations += result.iterations
                 rejected += result.rejected_states
@@ -390,11 +416,12 @@ class RigidModeDamping:
                     float(np.max(np.abs(local - self.anchor.x.array))), op=MPI.MAX
                 )
                 total = comm.allreduce(float(np.max(np.abs(local - start))), op=MPI.MAX)
-                if step <= self.rtol * total:
+                if step <= self.rtol * total or self.decrease ** (j + 1) < 1e-6:
                     break
             if result is not None and result.converged:
                 self._k.value = 0.0
-                result = self.problem.solve(raise_on_failure=False)
+                with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
+                    result = self.problem.solve(raise_on_failure=False)
                 iterations += result.iterations
                 rejected += result.rejected_states
                 norms.append(np.asarray(result.residual_norms))

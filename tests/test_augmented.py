@@ -171,3 +171,24 @@ def test_patch_augmented_lagrangian():
     assert np.all(np.abs(out["pressure"] / p - 1.0) < 0.01)
     # the multipliers carry the load: nodal pressures near p on each surface's share
     assert diag["updates"] >= 1
+
+
+def test_rigid_mode_damping_floating_cube():
+    """The patch test's upper cube held only by contact, started touching (no initial sink):
+    the damped proximal solves plus the final undamped solve reach the plain solution."""
+    penalty = 10.0
+    plain = _solve_patch(penalty)
+    # a free cube moves p / k in the first damped solve: half the penalty's overlap p / (2 eps)
+    # (with a fixed k giving a motion of h / 10, 28 times that overlap, the cube sank so deep
+    # that the second damped solve stopped in the line search; with this k fixed, the proximal
+    # solves crept, each reducing the residual by 10 %)
+    damped = _solve_patch(penalty, damping=PATCH_PRESSURE / (0.25 * PATCH_PRESSURE / penalty))
+    _report(
+        f"\nfloating cube: {damped['solver'].damped_solves} damped solves, "
+        f"{damped['iterations']} Newton it (plain from a sunk start: {plain['iterations']}); "
+        f"overlap {damped['overlap']:.6e} vs {plain['overlap']:.6e}"
+    )
+    assert damped["solver"].damped_solves >= 2
+    assert damped["total_force"] == pytest.approx(PATCH_PRESSURE, rel=1e-6)
+    assert np.allclose(damped["pressure"], plain["pressure"], rtol=1e-5, atol=0.0)
+    assert damped["overlap"] == pytest.approx(plain["overlap"], rel=1e-4)

@@ -270,7 +270,11 @@ PATCH_YOUNGS, PATCH_POISSON, PATCH_PRESSURE = 1.0, 0.3, 0.01
 
 
 def _solve_patch(
-    penalty: float, split_deficient: bool = True, rtol: float = 1e-8, augmented: dict | None = None
+    penalty: float,
+    split_deficient: bool = True,
+    rtol: float = 1e-8,
+    augmented: dict | None = None,
+    damping: float | None = None,
 ) -> dict:
     """Uniform dead pressure on the upper cube's top face; returns interior measurements.
 
@@ -302,6 +306,9 @@ def _solve_patch(
     # Dead load: pressure p on the reference top face (outward normal e_z).
     energy = _hyperelastic_energy(u, ufl.dx, [(ufl.dx, (PATCH_YOUNGS, PATCH_POISSON))])
     energy = energy + p * u[2] * ds(1)
+    if damping is not None:
+        damping_term, stiffness, anchor = fm.damping_energy(u, ufl.dx, damping)
+        energy = energy + damping_term
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
     zero = PETSc.ScalarType(0.0)
 
@@ -320,7 +327,8 @@ def _solve_patch(
     # Initial guess: the upper cube sunk by the expected penetration, so that contact holds it
     # from the first Newton iteration (nothing else fixes its vertical translation).
     upper_blocks = np.unique(np.asarray(V.dofmap.list)[upper_cells].ravel())
-    u.x.array.reshape(-1, 3)[upper_blocks, 2] = -p / (2.0 * penalty)
+    if damping is None:  # with damping the upper cube starts where it is, touching
+        u.x.array.reshape(-1, 3)[upper_blocks, 2] = -p / (2.0 * penalty)
     u.x.scatter_forward()
 
     contact = fm.ContactOperator(
@@ -330,7 +338,11 @@ def _solve_patch(
         residual, u, contact, bcs=bcs, energy=energy,
         petsc_options={**NEWTON_OPTIONS, "snes_rtol": rtol},
     )  # fmt: skip
-    solver = fm.AugmentedLagrangian(problem, **augmented) if augmented is not None else problem
+    solver = problem
+    if damping is not None:
+        solver = fm.RigidModeDamping(problem, stiffness, anchor)
+    if augmented is not None:
+        solver = fm.AugmentedLagrangian(solver, **augmented)
     result = solver.solve()
     assert result.converged
 
