@@ -417,7 +417,7 @@ if comm.rank == 0:
 if os.environ.get("MATDEPTH_DEMO_AUGMENTED", "1") not in ("", "0") and area.converged:
     area_run = runs["area"]
     penalty_overlap = area_run.contact.max_penetration()
-    augmented = fm.AugmentedLagrangian(area_run.problem, tol=0.25 * penalty_overlap, max_updates=10)
+    augmented = fm.AugmentedLagrangian(area_run.problem, tol=0.5 * penalty_overlap, max_updates=12)
     tic = time.perf_counter()
     augmented_result = augmented.solve(raise_on_failure=False)
     augmented_seconds = time.perf_counter() - tic
