@@ -409,8 +409,14 @@ class RigidModeDamping:
                 iterations += result.iterations
                 rejected += result.rejected_states
                 norms.append(np.asarray(result.residual_norms))
+                r = result.residual_norms
                 if not result.converged:
-                    break
+                    # a damped solve only has to make progress: the undamped solve at the end
+                    # decides (seen on DOLFINx 0.11: the energy line search stopped a damped
+                    # solve at 7e-5 of its initial residual)
+                    if not (len(r) and np.isfinite(r[-1]) and r[-1] <= 1e-3 * r[0]):
+                        break
+                    result = dataclasses.replace(result, converged=True)
                 local = self.u.x.array
                 step = comm.allreduce(
                     float(np.max(np.abs(local - self.anchor.x.array))), op=MPI.MAX
