@@ -12,6 +12,12 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from fenics_matdepth import checkpoint, contact, geometry, kinematics, materials
+from fenics_matdepth.augmented import (
+    AugmentedLagrangian,
+    RigidModeDamping,
+    UzawaUpdate,
+    damping_energy,
+)
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.depth import depth_deficiency, material_depth
@@ -27,6 +33,7 @@ from fenics_matdepth.solvers import (
 )
 
 __all__ = [
+    "AugmentedLagrangian",
     "BackwardEuler",
     "Checkpoint",
     "ContactAssembler",
@@ -35,12 +42,15 @@ __all__ = [
     "LoadStep",
     "Newmark",
     "NonlinearContactProblem",
+    "RigidModeDamping",
     "RigidRotation",
     "SolveResult",
     "TimeStep",
+    "UzawaUpdate",
     "__version__",
     "checkpoint",
     "contact",
+    "damping_energy",
     "depth_deficiency",
     "geometry",
     "kinematics",

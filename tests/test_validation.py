@@ -269,7 +269,13 @@ PATCH_LOWER_N, PATCH_UPPER_N = 8, 7
 PATCH_YOUNGS, PATCH_POISSON, PATCH_PRESSURE = 1.0, 0.3, 0.01
 
 
-def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-8) -> dict:
+def _solve_patch(
+    penalty: float,
+    split_deficient: bool = True,
+    rtol: float = 1e-8,
+    augmented: dict | None = None,
+    damping: float | None = None,
+) -> dict:
     """Uniform dead pressure on the upper cube's top face; returns interior measurements.
 
     Rollers: u_z = 0 on the lower cube's bottom, u_x = 0 on x = 0 and u_y = 0 on y = 0 (both
@@ -300,6 +306,9 @@ def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-
     # Dead load: pressure p on the reference top face (outward normal e_z).
     energy = _hyperelastic_energy(u, ufl.dx, [(ufl.dx, (PATCH_YOUNGS, PATCH_POISSON))])
     energy = energy + p * u[2] * ds(1)
+    if damping is not None:
+        damping_term, stiffness, anchor = fm.damping_energy(u, ufl.dx, damping)
+        energy = energy + damping_term
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
     zero = PETSc.ScalarType(0.0)
 
@@ -318,7 +327,8 @@ def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-
     # Initial guess: the upper cube sunk by the expected penetration, so that contact holds it
     # from the first Newton iteration (nothing else fixes its vertical translation).
     upper_blocks = np.unique(np.asarray(V.dofmap.list)[upper_cells].ravel())
-    u.x.array.reshape(-1, 3)[upper_blocks, 2] = -p / (2.0 * penalty)
+    if damping is None:  # with damping the upper cube starts where it is, touching
+        u.x.array.reshape(-1, 3)[upper_blocks, 2] = -p / (2.0 * penalty)
     u.x.scatter_forward()
 
     contact = fm.ContactOperator(
@@ -328,7 +338,12 @@ def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-
         residual, u, contact, bcs=bcs, energy=energy,
         petsc_options={**NEWTON_OPTIONS, "snes_rtol": rtol},
     )  # fmt: skip
-    result = problem.solve()
+    solver = problem
+    if damping is not None:
+        solver = fm.RigidModeDamping(problem, stiffness, anchor)
+    if augmented is not None:
+        solver = fm.AugmentedLagrangian(solver, **augmented)
+    result = solver.solve()
     assert result.converged
 
     num_vertices = V.dofmap.index_map.size_global
@@ -368,6 +383,8 @@ def _solve_patch(penalty: float, split_deficient: bool = True, rtol: float = 1e-
     mid = ~upper & np.isclose(X[:, 2], 0.5) & (X[:, 0] > 0.5)
     stretch_x = 1.0 + np.mean(U[mid, 0] / X[mid, 0])
     return {
+        "solver": solver,
+        "contact": contact,
         "num_cells": mesh.topology.index_map(3).size_global,
         "iterations": result.iterations,
         "total_force": float(np.sum(force[upper, 2])),

@@ -38,7 +38,12 @@ from fenics_matdepth.geometry.clip import (
     _triangle_area2,
 )
 
-__all__ = ["collocation_energy", "pair_energy"]
+__all__ = [
+    "augmented_pair_energy",
+    "collocation_energy",
+    "pair_energy",
+    "pressure_moments",
+]
 
 _NV = MAX_POLYGON_VERTICES
 # triangle of the single-pair helper (its tetrahedron is 3..6)
@@ -282,12 +287,16 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
 # numba's IR inlining of this large kernel made the first run's compilation about three
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up).
 @njit(cache=True)
-def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
+def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hess, p):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
     Args:
         xs: (3, 3) triangle vertices; xt: (4, 3) tetrahedron vertices (length).
         dt: (4,) material depths of the tetrahedron vertices (length).
+        offset: (3,) constant added to the integrand's value at each triangle vertex,
+            ``G_i = sum_j Lam_ij d_j + offset_i`` (length; zeros for the plain penalty energy,
+            ``p_i / eps`` for the augmented Lagrangian, see `_area_pairs_augmented`). Being
+            constant, it adds nothing to ``d G / d Lam``.
         penalty: eps (pressure / length).
         want_grad, want_hess: which derivatives to write.
         work: tuple from `_area_work`.
@@ -344,6 +353,9 @@ def _area_pair(xs, xt, dt, penalty, want_grad, want_hess, work, grad, hess, p):
     g0 = lam[0, 0] * dt[0] + lam[0, 1] * dt[1] + lam[0, 2] * dt[2] + lam[0, 3] * dt[3]
     g1 = lam[1, 0] * dt[0] + lam[1, 1] * dt[1] + lam[1, 2] * dt[2] + lam[1, 3] * dt[3]
     g2 = lam[2, 0] * dt[0] + lam[2, 1] * dt[1] + lam[2, 2] * dt[2] + lam[2, 3] * dt[3]
+    g0 += offset[0]
+    g1 += offset[1]
+    g2 += offset[2]
 
     # ---- Phi and its derivatives with respect to Lam (fan of signed triangles from mu = e_0)
     phi = 0.0
@@ -724,6 +736,7 @@ def _area_pairs_core(
     dt = np.empty(4, dtype=FLOAT)
     acc_g = np.empty(21, dtype=FLOAT)
     acc_h = np.empty((21, 21), dtype=FLOAT)
+    no_offset = np.zeros(3, dtype=FLOAT)
     m = 0
     for p in range(pair_tri.shape[0]):
         for a in range(3):
@@ -743,7 +756,7 @@ def _area_pairs_core(
         # the sums of theirs, mapped back to the parent's vertices
         for s in range(4 if split else 1):
             _gather_tet(x, depth, tet, k, s, split, xt, dt)
-            es = _area_pair(xs, xt, dt, penalty, wg, wh, work, grad, hess, out_row)
+            es = _area_pair(xs, xt, dt, no_offset, penalty, wg, wh, work, grad, hess, out_row)
             if not split:
                 e = es
             elif es >= 0.0:
@@ -879,6 +892,254 @@ def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_gra
         x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, want_grad, want_hess
     )
     return active, energy, grad, hess
+
+
+# ------------------------------------------------------------------------------------------
+# Augmented Lagrangian (paper section 8.3): nodal contact pressures on the penetrating surface
+# ------------------------------------------------------------------------------------------
+
+
+@njit(inline="always")
+def _scale_row(grad, hess, row, n, factor, want_grad, want_hess):
+    """Multiply row ``row`` of grad (n,) and hess (n, n) by ``factor`` in place."""
+    if want_grad:
+        for c in range(n):
+            grad[row, c] *= factor
+    if want_hess:
+        for r in range(n):
+            for c in range(n):
+                hess[row, r, c] *= factor
+
+
+@njit(inline="always")
+def _add_row(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
+    """``acc += row`` of grad and hess."""
+    if want_grad:
+        for c in range(n):
+            acc_g[c] += grad[row, c]
+    if want_hess:
+        for r in range(n):
+            for c in range(n):
+                acc_h[r, c] += hess[row, r, c]
+
+
+@njit(cache=True)
+def _area_pairs_augmented(
+    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, want_grad, want_hess
+):
+    """Augmented-Lagrangian energies of many (triangle, tetrahedron) pairs at fixed pressures.
+
+    The energy of a pair is ``E = int_{T cap K} (p g + (eps/2) g^2) dA``, with ``g`` the material
+    depth (as in `_area_pairs`) and ``p`` the nodal pressures of the triangle's vertices
+    interpolated linearly on the triangle (``p = sum_i p_i mu_i``, ``mu`` the barycentric
+    coordinates in T): the pressure is a P1 field on the penetrating surface, carried with its
+    material points, so the force it adds is ``p grad g`` (paper, section 8.3). Completing the
+    square, with ``Phi(H) = int_P (H . mu)^2 dxi`` as in `_area_pair`:
+
+        ``E = eps A [Phi(G + P / eps) - Phi(P / eps)]``,
+
+    each term one call of the pair kernel with a constant offset ``P / eps`` (the second with
+    zero depths), so the derivatives are the exact ones of the plain kernel. With all three
+    pressures zero the second term is skipped and the result is the plain penalty energy.
+
+    Args:
+        x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess: as `_area_pairs`.
+        pressure: (nv,) nodal contact pressure of each vertex (pressure units, >= 0); only
+            the values at triangle vertices are read.
+
+    Returns:
+        ``energy (np,)``, ``grad (np, 21)``, ``hess (np, 21, 21)`` as `_area_pairs`.
+    """
+    npairs = pair_tri.shape[0]
+    energy = np.zeros(npairs, dtype=FLOAT)
+    grad = np.zeros((npairs if want_grad else 0, 21), dtype=FLOAT)
+    hess = np.zeros((npairs if want_hess else 0, 21, 21), dtype=FLOAT)
+    work = _area_work()
+    xs = np.empty((3, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    offset = np.empty(3, dtype=FLOAT)
+    acc_g = np.empty(21, dtype=FLOAT)
+    acc_h = np.empty((21, 21), dtype=FLOAT)
+    for p in range(npairs):
+        has_pressure = False
+        for a in range(3):
+            v = tri[pair_tri[p], a]
+            offset[a] = pressure[v] / penalty
+            has_pressure = has_pressure or pressure[v] != 0.0
+            for r in range(3):
+                xs[a, r] = x[v, r]
+        k = pair_tet[p]
+        split = _is_split(tet, k)
+        _zero_folded(21, want_grad, want_hess, acc_g, acc_h)
+        e = 0.0
+        hit = False
+        for s in range(4 if split else 1):
+            for term in range(2 if has_pressure else 1):
+                _gather_tet(x, depth, tet, k, s, split, xt, dt)
+                if term == 1:
+                    for a in range(4):
+                        dt[a] = 0.0
+                es = _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad,
+                                hess, p)  # fmt: skip
+                if es < 0.0:
+                    break  # no polygon: neither term contributes
+                hit = True
+                if term == 1:
+                    es = -es
+                    _scale_row(grad, hess, p, 21, -1.0, want_grad, want_hess)
+                e += es
+                if split:
+                    _fold_centroid(grad, hess, p, 9, 21, s, want_grad, want_hess, acc_g, acc_h)
+                else:
+                    _add_row(grad, hess, p, 21, want_grad, want_hess, acc_g, acc_h)
+        _store_folded(grad, hess, p, 21, want_grad, want_hess, acc_g, acc_h)
+        energy[p] = e if hit else 0.0
+    return energy, grad, hess
+
+
+@njit(cache=True)
+def _area_pairs_augmented_active(
+    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, want_grad, want_hess
+):
+    """Like `_area_pairs_augmented`, for the intersecting pairs only (as `_area_pairs_active`).
+
+    Returns:
+        ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs.
+    """
+    flags = np.empty(pair_tri.shape[0], dtype=np.bool_)
+    na = _intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
+    active = np.empty(na, dtype=INDEX)
+    m = 0
+    for p in range(pair_tri.shape[0]):
+        if flags[p]:
+            active[m] = p
+            m += 1
+    energy, grad, hess = _area_pairs_augmented(
+        x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, pressure, want_grad,
+        want_hess,
+    )  # fmt: skip
+    return active, energy, grad, hess
+
+
+@njit(cache=True)
+def _area_pairs_pressure_moments(x, depth, tri, tet, pair_tri, pair_tet):
+    """The integrals the Uzawa update of the nodal pressures needs, per pair and triangle vertex.
+
+    For each pair and each vertex i of its triangle, over the intersection polygon (current
+    configuration; split tetrahedra summed over their sub-tetrahedra):
+    ``gmom[p, i] = int_{T cap K} mu_i g dA`` (length^3) and
+    ``amom[p, i] = int_{T cap K} mu_i dA`` (length^2), ``mu_i`` the hat function of vertex i
+    on T. Exact: a fan of signed triangles in the parameter plane, on which ``mu_i`` and ``g``
+    are linear (``int f h = area / 12 (sum_k f_k h_k + sum_k f_k sum_k h_k)``).
+
+    Args:
+        x, depth, tri, tet, pair_tri, pair_tet: as `_area_pairs`.
+
+    Returns:
+        ``gmom (np, 3)``, ``amom (np, 3)``.
+    """
+    npairs = pair_tri.shape[0]
+    gmom = np.zeros((npairs, 3), dtype=FLOAT)
+    amom = np.zeros((npairs, 3), dtype=FLOAT)
+    grads = np.empty((4, 3), dtype=FLOAT)
+    lam = np.empty((3, 4), dtype=FLOAT)
+    xs = np.empty((3, 3), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    mu = np.empty((2, _NV, 3), dtype=FLOAT)
+    vlab = np.empty((2, _NV, 2), dtype=INDEX)
+    elab = np.empty((2, _NV), dtype=INDEX)
+    gi = np.empty(3, dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    for p in range(npairs):
+        for a in range(3):
+            for r in range(3):
+                xs[a, r] = x[tri[pair_tri[p], a], r]
+        a2 = _triangle_area2(xs)
+        if a2 == 0.0:
+            continue
+        k = pair_tet[p]
+        split = _is_split(tet, k)
+        for s in range(4 if split else 1):
+            _gather_tet(x, depth, tet, k, s, split, xt, dt)
+            if _tet_gradients(xt, grads) == 0.0:
+                continue
+            _barycentric_rows(xs, xt, grads, lam)
+            n = _clip(lam, mu, vlab, elab)
+            if n < 3:
+                continue
+            for i in range(3):
+                gi[i] = (
+                    lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]
+                )
+            # fan from the parameter origin (mu = e_0), signed areas; dA = |n| dxi = a2 dxi
+            h0 = gi[0]
+            for v in range(n):
+                v1 = v + 1 if v + 1 < n else 0
+                area = 0.5 * (mu[0, v, 1] * mu[0, v1, 2] - mu[0, v, 2] * mu[0, v1, 1]) * a2
+                hv = mu[0, v, 0] * gi[0] + mu[0, v, 1] * gi[1] + mu[0, v, 2] * gi[2]
+                hw = mu[0, v1, 0] * gi[0] + mu[0, v1, 1] * gi[1] + mu[0, v1, 2] * gi[2]
+                hsum = h0 + hv + hw
+                for i in range(3):
+                    f0 = 1.0 if i == 0 else 0.0
+                    fv = mu[0, v, i]
+                    fw = mu[0, v1, i]
+                    amom[p, i] += area * (f0 + fv + fw) / 3.0
+                    gmom[p, i] += (
+                        area / 12.0 * (f0 * h0 + fv * hv + fw * hw + (f0 + fv + fw) * hsum)
+                    )
+    return gmom, amom
+
+
+def augmented_pair_energy(
+    x_tri: np.ndarray,
+    x_tet: np.ndarray,
+    depth_tet: np.ndarray,
+    penalty: float,
+    pressure_tri: np.ndarray,
+    centroid_depth: float | None = None,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Augmented-Lagrangian energy of one (triangle, tetrahedron) pair, exact derivatives.
+
+    Args:
+        x_tri, x_tet, depth_tet, penalty, centroid_depth: as :func:`pair_energy`.
+        pressure_tri: (3,) nodal contact pressures of the triangle's vertices (pressure).
+
+    Returns:
+        ``(E, grad, hess)``: ``int_{T cap K} (p g + (eps/2) g^2) dA`` with ``p`` interpolated
+        linearly on the triangle (energy), gradient (21,) and Hessian (21, 21) as
+        :func:`pair_energy`.
+    """
+    xs = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
+    x, depth, tet = _one_pair_arrays(xs, x_tet, depth_tet, centroid_depth)
+    pressure = np.zeros(depth.shape[0], dtype=FLOAT)
+    pressure[:3] = np.asarray(pressure_tri, dtype=FLOAT).reshape(3)
+    one = np.zeros(1, dtype=INDEX)
+    energy, grad, hess = _area_pairs_augmented(
+        x, depth, _ONE_TRI, tet, one, one, penalty, pressure, True, True
+    )
+    return float(energy[0]), grad[0], hess[0]
+
+
+def pressure_moments(
+    x_tri: np.ndarray,
+    x_tet: np.ndarray,
+    depth_tet: np.ndarray,
+    centroid_depth: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``int_{T cap K} mu_i g dA`` and ``int_{T cap K} mu_i dA`` for the 3 triangle vertices.
+
+    Args:
+        x_tri, x_tet, depth_tet, centroid_depth: as :func:`pair_energy`.
+
+    Returns:
+        ``(gmom (3,), amom (3,))`` (length^3, length^2).
+    """
+    xs = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
+    x, depth, tet = _one_pair_arrays(xs, x_tet, depth_tet, centroid_depth)
+    one = np.zeros(1, dtype=INDEX)
+    gmom, amom = _area_pairs_pressure_moments(x, depth, _ONE_TRI, tet, one, one)
+    return gmom[0], amom[0]
 
 
 @njit(cache=True)

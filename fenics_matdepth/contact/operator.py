@@ -34,7 +34,9 @@ from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.contact import assembly, pairs
 from fenics_matdepth.contact.kernels import (
     _area_pairs_active,
+    _area_pairs_augmented_active,
     _area_pairs_max_depth,
+    _area_pairs_pressure_moments,
     _collocation_pairs,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
@@ -123,6 +125,7 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._cache: dict[str, typing.Any] = {}
+        self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(self, allow_reference_overlap)
         self.update()
@@ -166,10 +169,18 @@ class ContactOperator:
         if self.integration == "area":
             # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
             # still comes out over its 7 original vertices
-            active, energy, grad, hess = _area_pairs_active(
-                s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
-                self.penalty, want_grad, want_hess,
-            )  # fmt: skip
+            if self._pressure is None:
+                active, energy, grad, hess = _area_pairs_active(
+                    s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
+                    self.penalty, want_grad, want_hess,
+                )  # fmt: skip
+            else:
+                # the pressures of the held vertices (the numbering changes with the halo)
+                held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
+                active, energy, grad, hess = _area_pairs_augmented_active(
+                    s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
+                    self.penalty, held_pressure, want_grad, want_hess,
+                )  # fmt: skip
             pa, pk = self._pair_a[active], self._pair_k[active]
         else:
             energy, grad, hess = _collocation_pairs(
@@ -295,6 +306,62 @@ class ContactOperator:
         self._held_keys = None
         self._cache.pop("pattern_missing", None)
         return assembly.create_matrix(self.comm, a, self._pattern_keys, self.num_vertices)
+
+    # -- augmented Lagrangian (nodal contact pressures; driver: fenics_matdepth.augmented) ---
+
+    @property
+    def pressure(self) -> np.ndarray | None:
+        """Nodal contact pressures (global vertex numbering, pressure units), or ``None``."""
+        return self._pressure
+
+    def set_pressure(self, pressure: np.ndarray | None) -> None:
+        """Set the nodal contact pressures of the augmented Lagrangian (or ``None``: plain
+        penalty).
+
+        The energy becomes ``sum over pairs of int_{T cap K} (p g + (eps/2) g^2) dA``, ``p``
+        interpolated linearly on each penetrating boundary triangle from its vertices' values
+        (see ``_area_pairs_augmented``); its derivatives are exact at fixed pressures.
+
+        Args:
+            pressure: ``(num_vertices,)`` values >= 0, the same on every rank (only boundary
+                vertices matter).
+        """
+        if pressure is not None:
+            pressure = np.ascontiguousarray(pressure, dtype=FLOAT)
+            if pressure.shape != (self.num_vertices,):
+                raise ValueError(
+                    f"pressure must have shape ({self.num_vertices},), got {pressure.shape}"
+                )
+            if self.integration != "area":
+                raise ValueError("nodal contact pressures need integration='area'")
+        self._pressure = pressure
+        self._cache.clear()
+
+    def pressure_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per vertex, ``int mu_i g dA`` (L^3) and ``int mu_i dA`` (L^2) over every intersection
+        polygon of the boundary triangles around vertex i (``mu_i`` its hat function on the
+        triangle), at the last update: the Uzawa update's data (collective; global vertex
+        numbering, the same on every rank)."""
+        r = self._evaluate(False, False)
+        active = r["active"]
+        s = self.surface
+        gmom, amom = _area_pairs_pressure_moments(
+            s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
+            self._pair_k[active],
+        )  # fmt: skip
+        # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are
+        # the moments
+        verts = s.global_vertex[s.tri[self._pair_a[active]].ravel()]
+        n = self.num_vertices
+        local = np.vstack(
+            (
+                np.bincount(verts, weights=gmom.ravel(), minlength=n),
+                np.bincount(verts, weights=amom.ravel(), minlength=n),
+            )
+        )
+        total = np.empty_like(local)
+        self.comm.Allreduce(local, total, op=MPI.SUM)
+        return total[0], total[1]
 
     # -- diagnostics ------------------------------------------------------------------------
 

@@ -1,0 +1,243 @@
+"""The 3D Hertz problem of dolfinx_contact's demo (python/demos/demo_hertzian_contact.py,
+``--3D --problem 1``): penalty and augmented Lagrangian against Hertz theory.
+
+Set-up as the peer's demo: a hemisphere of radius R = 8 (lower half of a ball) rests on a
+20 x 20 x 20 block, both linearly elastic with E = 200, nu = 0.3; a body force of density
+``3 L / (4 pi R^3)`` (L = 2 R 0.625 = 10) acts on the hemisphere, applied in 4 load steps; the
+block's bottom is clamped. The mesh size is ``res`` within R/2 of the contact point and grows
+to ``2 res`` at distance R (the peer's gmsh Threshold field). Here the quarter model of
+``meshes/hertz.py`` (symmetry planes x = 0, y = 0 on rollers, material depth of the full
+bodies) replaces the peer's full model with three pinned sphere nodes; the hemisphere is held
+vertically only by contact, as in the peer's demo.
+
+The body force on the hemisphere (volume 2 pi R^3 / 3) totals ``L / 2 = 5``; the Hertz values
+are those of the force the contact transmits, which equilibrium makes equal to it (printed).
+(The peer's script evaluates its Hertz formulas with ``L = 10``, twice the force it applies.)
+
+Measured: the overlap (largest material depth reached by a contact surface) relative to the
+Hertz approach delta = a^2 / R; p_max, the largest nodal pressure on the block's top (nodal
+contact force / tributary area); the contact radius from the second moment of the block's
+nodal contact forces (``<r^2> = 2 a^2 / 5`` for the Hertz pressure); Newton iterations; wall
+time of the load stepping (mesh, forms and compilation excluded).
+
+Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]``.
+Prints figures; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import dolfinx
+import numpy as np
+import ufl
+
+import fenics_matdepth as fm
+from fenics_matdepth.depth import boundary_triangles, distance_to_triangles
+
+ROOT = Path(__file__).resolve().parents[1]
+RADIUS, WIDTH, DEPTH = 8.0, 20.0, 20.0
+YOUNGS, POISSON = 200.0, 0.3
+LOAD = 2 * RADIUS * 0.625
+#: the peer's errors of p_max against Hertz theory at res 1.0, 0.5, 0.35
+PEER_PMAX_ERROR = {1.0: -0.73, 0.5: -0.16, 0.35: 0.001}
+
+
+def _hertz_module():
+    spec = importlib.util.spec_from_file_location("meshes_hertz", ROOT / "meshes" / "hertz.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _full_body_depth(mesh, tol):
+    """Material depth of the full bodies: distance to the exterior facets off x = 0, y = 0."""
+    triangles = boundary_triangles(mesh)
+    on_plane = np.zeros(triangles.shape[0], dtype=bool)
+    for axis in (0, 1):
+        on_plane |= np.all(np.abs(triangles[:, :, axis]) < tol, axis=1)
+    Q = dolfinx.fem.functionspace(mesh, ("Lagrange", 1))
+    depth = dolfinx.fem.Function(Q)
+    depth.x.array[:] = distance_to_triangles(Q.tabulate_dof_coordinates(), triangles[~on_plane])
+    return depth
+
+
+def _gather(V, rows):
+    n_owned = V.dofmap.index_map.size_local
+    return np.concatenate(V.mesh.comm.allgather(np.asarray(rows)[:n_owned]))
+
+
+def run(
+    res: float,
+    method: str,
+    factor: float,
+    tol_delta: float,
+    steps: int,
+    relaxation: float = 0.5,
+    max_updates: int = 20,
+) -> dict:
+    comm = MPI.COMM_WORLD
+    hertz = _hertz_module()
+    mesh, cell_tags, facet_tags = hertz.hertz_mesh(
+        comm, radius=RADIUS, block_width=WIDTH / 2, block_depth=DEPTH, contact_size=res,
+        far_size=2 * res, refine_radius=RADIUS / 2, coarsen_radius=RADIUS,
+    )  # fmt: skip
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    mu = YOUNGS / (2 * (1 + POISSON))
+    lmbda = YOUNGS * POISSON / ((1 + POISSON) * (1 - 2 * POISSON))
+    eps_u = ufl.sym(ufl.grad(u))
+    density = 3 * LOAD / (4 * np.pi * RADIUS**3)
+    scale = dolfinx.fem.Constant(mesh, PETSc.ScalarType(0.0))
+    dx = ufl.Measure("dx", domain=mesh, subdomain_data=cell_tags)
+    energy = (mu * ufl.inner(eps_u, eps_u) + 0.5 * lmbda * ufl.tr(eps_u) ** 2) * dx
+    energy = energy + scale * density * u[2] * dx(hertz.SPHERE)
+    # the hemisphere is held only by contact: damp its rigid motion (a first proximal step of
+    # a hundredth of the contact mesh size under the full body force), removed at each solve's
+    # end (fm.RigidModeDamping)
+    damping, stiffness, anchor = fm.damping_energy(u, dx(hertz.SPHERE), density / (0.01 * res))
+    energy = energy + damping
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    zero = PETSc.ScalarType(0.0)
+
+    def roller(tag, component):
+        dofs = dolfinx.fem.locate_dofs_topological(V.sub(component), 2, facet_tags.find(tag))
+        return dolfinx.fem.dirichletbc(zero, dofs, V.sub(component))
+
+    bottom = dolfinx.fem.locate_dofs_topological(V, 2, facet_tags.find(hertz.BLOCK_BOTTOM))
+    bcs = [
+        roller(hertz.SYMMETRY_X, 0),
+        roller(hertz.SYMMETRY_Y, 1),
+        dolfinx.fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), bottom, V),
+    ]
+    depth = _full_body_depth(mesh, 1e-9 * RADIUS)
+    penalty = fm.propose_penalty(mesh, YOUNGS, factor=factor)
+    contact = fm.ContactOperator(u, depth, penalty=penalty)
+    problem = fm.ContactProblem(
+        residual, u, contact, bcs=bcs, energy=energy, petsc_options={"snes_rtol": 1e-8}
+    )
+    force = LOAD / 2
+    e_star = YOUNGS / (2 * (1 - POISSON**2))
+    a_theory = (3 * force * RADIUS / (4 * e_star)) ** (1 / 3)
+    delta = a_theory**2 / RADIUS
+    p0 = 3 * force / (2 * np.pi * a_theory**2)
+    solver = fm.RigidModeDamping(problem, stiffness, anchor)
+    if method == "augmented":
+        solver = fm.AugmentedLagrangian(
+            solver, tol=tol_delta * delta, max_updates=max_updates, relaxation=relaxation
+        )
+    tic = time.perf_counter()
+    load_steps = fm.solve_load_steps(
+        solver, lambda t: setattr(scale, "value", t), num_steps=steps, progress=False
+    )
+    seconds = comm.allreduce(time.perf_counter() - tic, op=MPI.MAX)
+
+    # nodal contact forces and the block's top-face tributary areas
+    n = V.dofmap.index_map.size_global
+    dofs, values = contact.gradient_array()
+    dofs = np.concatenate(comm.allgather(dofs))
+    values = np.concatenate(comm.allgather(values))
+    f = -np.bincount(dofs, weights=values, minlength=3 * n).reshape(-1, 3)
+    X = _gather(V, V.tabulate_dof_coordinates())
+    imap = V.dofmap.index_map
+    body = np.zeros(imap.size_local + imap.num_ghosts, dtype=np.int8)
+    body[np.asarray(V.dofmap.list)[cell_tags.find(hertz.SPHERE)].ravel()] = 1
+    sphere = _gather(V, body) == 1
+    top = ~sphere & (np.abs(X[:, 2]) < 1e-9 * RADIUS)
+    tri = boundary_triangles(mesh)
+    flat = np.all(np.abs(tri[:, :, 2]) < 1e-9 * RADIUS, axis=1)
+    areas = 0.5 * np.linalg.norm(
+        np.cross(tri[flat, 1] - tri[flat, 0], tri[flat, 2] - tri[flat, 0]), axis=1
+    )
+    key = {tuple(np.round(x, 9)): i for i, x in enumerate(X[top])}
+    tributary = np.zeros(int(top.sum()))
+    for corners, area in zip(tri[flat], areas, strict=True):
+        for c in corners:
+            i = key.get(tuple(np.round(c, 9)))
+            if i is not None:
+                tributary[i] += area / 3
+    fz = -f[top, 2]  # the block is pushed down
+    # the sphere's only flat-face-down contact point is the pole: its top-face triangles at
+    # z = 0 do not exist, so every flat triangle is the block's
+    pressure = np.where(tributary > 0, fz / np.maximum(tributary, 1e-300), 0.0)
+    r2 = X[top, 0] ** 2 + X[top, 1] ** 2
+    a_moment = np.sqrt(2.5 * np.sum(fz * r2) / np.sum(fz))
+    transmitted = 4 * np.sum(f[sphere, 2])
+    overlap = contact.max_penetration()
+    out = {
+        "res": res,
+        "method": method,
+        "vertices": n,
+        "cells": mesh.topology.index_map(3).size_global,
+        "dofs": 3 * n,
+        "penalty": penalty,
+        "factor": factor,
+        "newton": sum(s.iterations for s in load_steps),
+        "cuts": sum(s.cuts for s in load_steps),
+        "seconds": seconds,
+        "force": transmitted,
+        "force_block": 4 * np.sum(fz),
+        "delta": delta,
+        "overlap_delta": overlap / delta,
+        "p0": p0,
+        "p_max": float(pressure.max()),
+        "p_error": float(pressure.max()) / p0 - 1,
+        "a": a_theory,
+        "a_moment": a_moment,
+        "a_error": a_moment / a_theory - 1,
+    }
+    if method == "augmented":
+        out["updates"] = solver.total_updates
+        out["overlap_tol"] = overlap / solver.tolerance
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--res", type=float, nargs="+", default=[1.0, 0.5])
+    parser.add_argument("--method", choices=["penalty", "augmented", "both"], default="both")
+    parser.add_argument("--factor", type=float, default=10.0, help="propose_penalty factor")
+    parser.add_argument(
+        "--tol", type=float, default=0.02, help="augmented: overlap tolerance / delta"
+    )
+    parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument("--relaxation", type=float, default=0.5, help="augmented: Uzawa omega")
+    parser.add_argument("--max-updates", type=int, default=20, help="augmented: per step")
+    args = parser.parse_args()
+    methods = ["penalty", "augmented"] if args.method == "both" else [args.method]
+    rows = []
+    for res in args.res:
+        for method in methods:
+            try:
+                row = run(
+                    res, method, args.factor, args.tol, args.steps, args.relaxation,
+                    args.max_updates,
+                )  # fmt: skip
+            except RuntimeError as err:
+                if MPI.COMM_WORLD.rank == 0:
+                    print(f"res {res} {method}: FAILED: {str(err)[:300]}", flush=True)
+                continue
+            rows.append(row)
+            if MPI.COMM_WORLD.rank == 0:
+                print(
+                    f"res {res:4.2f} {method:9s} {row['vertices']:6d} vertices "
+                    f"{row['cells']:6d} cells  eps {row['penalty']:.4g} "
+                    f"({row['factor']:g} E/h)  newton {row['newton']:3d}"
+                    f"{'  updates ' + str(row['updates']) if 'updates' in row else ''}  "
+                    f"cuts {row['cuts']}  {row['seconds']:6.1f} s  F {row['force']:.4f} "
+                    f"(block {row['force_block']:.4f})  overlap/delta "
+                    f"{row['overlap_delta']:.3f}  p_max {row['p_max']:.3f} vs p0 {row['p0']:.3f}"
+                    f" ({row['p_error']:+.1%}, peer {PEER_PMAX_ERROR.get(res, np.nan):+.1%})  "
+                    f"a {row['a_moment']:.3f} vs {row['a']:.3f} ({row['a_error']:+.1%})",
+                    flush=True,
+                )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,442 @@
+"""Augmented Lagrangian contact (Hirota, Fisher & State 2003, section 8.3): Uzawa updates of
+nodal contact pressures around a contact Newton solve.
+
+The penalty method leaves an overlap of about ``p / eps`` (``p`` the contact pressure); making
+it small takes a penalty so large that Newton's method struggles. The augmented Lagrangian
+keeps a moderate penalty and carries the pressure in nodal values ``p_i`` on the boundary
+vertices, interpolated linearly on every penetrating triangle. At fixed pressures the contact
+energy is
+
+    ``E = sum over (T, K) of int_{T cap K} (p g + (eps/2) g^2) dA``
+
+(the force is ``(p + eps g) grad g``), with exact first and second derivatives, so each inner
+Newton solve converges as the plain penalty one does. Between solves the pressures take the
+Uzawa step
+
+    ``p_i <- max(0, p_i + omega eps int mu_i g dA / int mu_i dA)``
+
+(``mu_i`` the hat function of vertex i on its triangles, the integrals over the intersection
+polygons; vertices whose triangles do not penetrate get 0), until the largest material depth
+reached by any surface point is below the tolerance.
+
+Why ``omega = 1/2`` by default: between two deformable bodies both surfaces penetrate the
+other body, and both surfaces' pressures grow by ``omega eps g``, so the pressure they carry
+together grows by ``2 omega eps g``, the whole penalty pressure when ``omega = 1``. The next
+equilibrium would then need ``g = 0`` exactly, where the force ``p grad g`` of a surface point
+drops to 0 as it leaves the other body: a kink of the energy on which Newton's method chatters
+(measured on the patch test: the solve after the first update with ``omega = 1`` stalled at
+30 % of its initial residual). With ``omega = 1/2`` the carried pressure approaches the
+contact pressure from below, the overlap halves at each update and stays positive, and every
+inner solve stays in the smooth region. Should an inner solve fail anyway, the update is
+halved and the solve retried from the state before it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import typing
+
+from mpi4py import MPI
+
+import numpy as np
+
+from fenics_matdepth.depth import boundary_triangles
+from fenics_matdepth.solvers import SolveResult
+
+__all__ = ["AugmentedLagrangian", "RigidModeDamping", "UzawaUpdate", "damping_energy"]
+
+#: A failed inner solve after a pressure update is retried with the update halved, at most
+#: this many times.
+MAX_UPDATE_HALVINGS = 4
+
+
+class _Problem(typing.Protocol):
+    u: typing.Any
+    contact: typing.Any
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
+
+
+@contextlib.contextmanager
+def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
+    """While solving again after a first solve (after a pressure update, or a damped solve),
+    add an absolute Newton tolerance: ``inner_rtol`` times the first solve's initial residual.
+
+    After an update the solve starts close to its solution, and a tolerance relative to
+    that small initial residual falls below the residual's rounding floor (measured on the
+    patch test with snes_rtol 1e-8: the solves after updates stalled between 1.2e-11 and
+    3.9e-11 for relative targets of 4e-12 and below, while the first solve had started at
+    2.2e-3)."""
+    snes = getattr(problem, "snes", None)
+    newton = getattr(problem, "_solver", None)
+    if first_norm is None or (snes is None and newton is None):
+        yield
+        return
+    if snes is not None:
+        rtol, atol, stol, max_it = snes.getTolerances()
+        snes.setTolerances(atol=max(atol, inner_rtol * first_norm))
+        try:
+            yield
+        finally:
+            snes.setTolerances(rtol=rtol, atol=atol, stol=stol, max_it=max_it)
+    else:
+        atol = newton.atol
+        newton.atol = max(atol, inner_rtol * first_norm)
+        try:
+            yield
+        finally:
+            newton.atol = atol
+
+
+@dataclasses.dataclass
+class UzawaUpdate:
+    """One inner solve of :class:`AugmentedLagrangian` and the pressure update after it.
+
+    Attributes:
+        newton_iterations: iterations of the inner Newton solve.
+        overlap: largest material depth reached by the contact surface after it (L).
+        overlap_h: ``overlap`` relative to the mesh size ``h`` of the driver.
+        overlap_tol: ``overlap`` relative to the tolerance (<= 1: accepted).
+        max_pressure: largest nodal pressure used in the solve (pressure units).
+        pressure_change: largest change of a nodal pressure by the update that followed,
+            relative to the largest updated pressure (0 when the solve was accepted).
+    """
+
+    newton_iterations: int
+    overlap: float
+    overlap_h: float
+    overlap_tol: float
+    max_pressure: float
+    pressure_change: float
+
+
+class AugmentedLagrangian:
+    """Uzawa iterations on nodal contact pressures around a contact problem's Newton solve.
+
+    Wraps a :class:`~fenics_matdepth.ContactProblem` or
+    :class:`~fenics_matdepth.NonlinearContactProblem` whose operator uses area integration, and
+    offers the same ``u``, ``contact`` and ``solve(raise_on_failure)``, so it goes where the
+    problem went, e.g. ``fm.solve_load_steps(fm.AugmentedLagrangian(problem, tol_h=0.01),
+    set_load)``. Pressures carry over from one solve (load step) to the next; a failed solve
+    restores the pressures it started from, so load stepping can retry a smaller step.
+
+    Args:
+        problem: the contact problem (its operator gets the nodal pressures).
+        tol: largest accepted overlap (L): the maximum material depth reached by any point of
+            the contact surface (``ContactOperator.max_penetration``).
+        tol_h: the same relative to the mesh size ``h``; with both, the smaller applies.
+        max_updates: pressure updates before a solve counts as failed.
+        h: mesh size (L); default: the median edge length of the exterior boundary triangles
+            (as :func:`~fenics_matdepth.propose_penalty`).
+        relaxation: ``omega`` of the Uzawa step (see the module's docstring), in (0, 1].
+        inner_rtol: the solves after a pressure update stop once the residual is below this
+            fraction of the initial residual of the solve's first (pre-update) solve, or at the
+            problem's own tolerances (see ``_absolute_tolerance``).
+
+    Attributes:
+        pressure: the nodal pressures (global vertex numbering, the same on every rank).
+        tolerance: the overlap accepted (L).
+        history: one :class:`UzawaUpdate` per inner solve of the last :meth:`solve`.
+        total_updates, total_newton_iterations: sums over every :meth:`solve` so far.
+    """
+
+    def __init__(
+        self,
+        problem: _Problem,
+        tol: float | None = None,
+        tol_h: float | None = None,
+        max_updates: int = 20,
+        h: float | None = None,
+        relaxation: float = 0.5,
+        inner_rtol: float = 1e-6,
+    ):
+        contact = problem.contact
+        if contact.integration != "area":
+            raise ValueError(
+                "the augmented Lagrangian needs a contact operator with area integration"
+            )
+        if tol is None and tol_h is None:
+            raise ValueError("give a tolerance on the overlap: tol (length) or tol_h (times h)")
+        if not 0.0 < relaxation <= 1.0:
+            raise ValueError(f"relaxation must be in (0, 1], got {relaxation}")
+        self.relaxation = float(relaxation)
+        self.inner_rtol = float(inner_rtol)
+        if max_updates < 0:
+            raise ValueError(f"max_updates must be >= 0, got {max_updates}")
+        if h is None:
+            x = boundary_triangles(problem.u.function_space.mesh)
+            h = float(np.median(np.linalg.norm(x[:, [1, 2, 0]] - x, axis=2)))
+        self.h = float(h)
+        bounds = [t for t in (tol, None if tol_h is None else tol_h * self.h) if t is not None]
+        self.tolerance = float(min(bounds))
+        if not (np.isfinite(self.tolerance) and self.tolerance > 0.0):
+            raise ValueError(f"the overlap tolerance must be a positive length, got {bounds}")
+        self.problem = problem
+        self.u = problem.u
+        self.contact = contact
+        self.max_updates = int(max_updates)
+        self.pressure = np.zeros(contact.num_vertices)
+        contact.set_pressure(self.pressure)
+        self.history: list[UzawaUpdate] = []
+        self.total_updates = 0
+        self.total_newton_iterations = 0
+
+    def _set(self, pressure: np.ndarray) -> None:
+        self.pressure = pressure
+        self.contact.set_pressure(pressure)
+
+    def update_pressure(self) -> float:
+        """One Uzawa step at the current state (collective).
+
+        Returns:
+            The largest change of a nodal pressure, relative to the largest new pressure.
+        """
+        gmom, amom = self.contact.pressure_moments()
+        new = np.zeros_like(self.pressure)
+        touched = amom > 0.0
+        new[touched] = np.maximum(
+            0.0,
+            self.pressure[touched]
+            + self.relaxation * self.contact.penalty * gmom[touched] / amom[touched],
+        )
+        scale = max(float(np.max(new, initial=0.0)), np.finfo(float).tiny)
+        change = float(np.max(np.abs(new - self.pressure), initial=0.0)) / scale
+        self._set(new)
+        return change
+
+    def _absolute_tolerance(self, first_norm: float | None):
+        """See :func:`_absolute_tolerance`."""
+        return _absolute_tolerance(self.problem, first_norm, self.inner_rtol)
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult:
+        """Newton solves and pressure updates until the overlap is within the tolerance.
+
+        Args:
+            raise_on_failure: raise ``RuntimeError`` if an inner solve fails or the overlap is
+                still above the tolerance after ``max_updates`` updates; otherwise return the
+                result with ``converged=False`` (the pressures are then restored).
+
+        Returns:
+            A :class:`~fenics_matdepth.SolveResult` whose ``iterations`` are the Newton
+            iterations of all inner solves and ``residual_norms`` their histories joined.
+        """
+        start = self.pressure.copy()
+        self.history = []
+        norms: list[np.ndarray] = []
+        iterations, rejected, converged, reason = 0, 0, False, -1
+        result = None
+        previous = None  # (state, pressures) before the last update, to retry a failed solve
+        halvings = 0
+        k = 0
+        first_norm = None
+        while True:
+            with self._absolute_tolerance(first_norm):
+                result = self.problem.solve(raise_on_failure=False)
+            if first_norm is None and len(result.residual_norms):
+                first_norm = float(result.residual_norms[0])
+            iterations += result.iterations
+            rejected += result.rejected_states
+            norms.append(np.asarray(result.residual_norms))
+            if not result.converged:
+                if previous is None or halvings >= MAX_UPDATE_HALVINGS:
+                    reason = result.reason
+                    break
+                # halve the last update and solve again from the state before it
+                halvings += 1
+                self.u.x.array[:] = previous[0]
+                self._set(0.5 * (previous[1] + self.pressure))
+                continue
+            overlap = self.contact.max_penetration()
+            record = UzawaUpdate(
+                result.iterations, overlap, overlap / self.h, overlap / self.tolerance,
+                float(np.max(self.pressure, initial=0.0)), 0.0,
+            )  # fmt: skip
+            self.history.append(record)
+            if overlap <= self.tolerance:
+                converged, reason = True, result.reason
+                break
+            if k == self.max_updates:
+                reason = 0  # every inner solve converged, the overlap did not
+                break
+            previous = (self.u.x.array.copy(), self.pressure.copy())
+            halvings = 0
+            record.pressure_change = self.update_pressure()
+            self.total_updates += 1
+            k += 1
+        self.total_newton_iterations += iterations
+        out = SolveResult(
+            converged, reason, iterations,
+            np.concatenate(norms) if norms else np.empty(0), rejected, result.min_det_F,
+        )  # fmt: skip
+        if not converged:
+            self._set(start)
+            if raise_on_failure:
+                raise RuntimeError(self.failure_message(out))
+        return out
+
+    def failure_message(self, result: SolveResult) -> str:
+        """Why :meth:`solve` failed."""
+        if result.reason == 0:
+            last = self.history[-1]
+            return (
+                f"augmented Lagrangian: overlap {last.overlap:.3e} still above the tolerance "
+                f"{self.tolerance:.3e} after {len(self.history) - 1} pressure updates; raise "
+                "max_updates or the penalty"
+            )
+        return "augmented Lagrangian: " + result.failure_message()
+
+    def diagnostics(self) -> dict[str, typing.Any]:
+        """The last solve: ``updates`` (pressure updates), ``newton_iterations`` (all inner
+        solves), ``overlap`` (L), ``overlap_h`` and ``overlap_tol`` (relative to h and to the
+        tolerance), ``max_pressure`` and the last ``pressure_change`` (relative)."""
+        if not self.history:
+            return {}
+        last = self.history[-1]
+        return {
+            "updates": len(self.history) - 1,
+            "newton_iterations": sum(r.newton_iterations for r in self.history),
+            "overlap": last.overlap,
+            "overlap_h": last.overlap_h,
+            "overlap_tol": last.overlap_tol,
+            "max_pressure": float(np.max(self.pressure, initial=0.0)),
+            "pressure_change": self.history[-2].pressure_change if len(self.history) > 1 else 0.0,
+        }
+
+
+def damping_energy(
+    u: typing.Any, measure: typing.Any, stiffness: float
+) -> tuple[typing.Any, typing.Any, typing.Any]:
+    """The proximal term ``(k / 2) int |u - u_anchor|^2`` for :class:`RigidModeDamping`.
+
+    Add the returned form to the energy (and its derivative to the residual) of a problem with
+    a body held only by contact.
+
+    Args:
+        u: the displacement Function.
+        measure: where to damp, e.g. ``dx(free_body_tag)`` (or ``ufl.dx``).
+        stiffness: k (force / length^4: a body force per unit displacement); a body force
+            ``f`` then moves a free body by about ``f / k`` per proximal step.
+
+    Returns:
+        ``(energy_term, k, anchor)``: the UFL form, the ``Constant`` k and the anchor Function,
+        to pass to :class:`RigidModeDamping`.
+    """
+    from petsc4py import PETSc
+
+    import dolfinx
+    import ufl
+
+    anchor = dolfinx.fem.Function(u.function_space, name="anchor")
+    k = dolfinx.fem.Constant(u.function_space.mesh, PETSc.ScalarType(stiffness))
+    return 0.5 * k * ufl.inner(u - anchor, u - anchor) * measure, k, anchor
+
+
+class RigidModeDamping:
+    """Proximal-point solves for bodies that are free until contact engages.
+
+    A body held only by contact (a floating body under a body force, a body pushed by forces
+    before it touches) has a rigid-body mode with no stiffness until the contact zone has
+    grown: Newton's matrix is singular or nearly so, and the first solve of the first load step
+    diverges. The problem's energy gets the term ``(k / 2) int |u - u_anchor|^2`` (from
+    :func:`damping_energy`): with the anchor at the current state each solve is well posed and
+    moves a free body by about ``f / k``; the anchor then moves to the solution and the solve
+    repeats with ``k`` divided by ``1 / decrease`` (proximal point iteration with a falling
+    stiffness: the first solve moves a free body little, the later ones let contact, which has
+    engaged meanwhile, carry it) until a solve changes ``u`` by less than ``rtol`` times the
+    whole change of this call or ``k`` has fallen below ``1e-6`` of its start. Then ``k`` is set
+    to 0 and a last solve, from that nearly balanced state, removes the remaining damping
+    force: the result solves the undamped problem.
+
+    Args:
+        problem: a contact problem whose energy and residual include the damping term.
+        stiffness: the ``Constant`` k of :func:`damping_energy` (its value is the k used).
+        anchor: the anchor Function of :func:`damping_energy`.
+        rtol: stop the damped solves when the last one moved ``u`` by less than this fraction
+            of the total change (max norm).
+        max_solves: damped solves at most.
+        decrease: factor on k from one damped solve to the next, in (0, 1].
+        inner_rtol: the solves after the first stop at this fraction of the first solve's
+            initial residual at the latest (see :class:`AugmentedLagrangian`).
+    """
+
+    def __init__(
+        self,
+        problem: _Problem,
+        stiffness,
+        anchor,
+        rtol: float = 1e-2,
+        max_solves: int = 20,
+        decrease: float = 0.1,
+        inner_rtol: float = 1e-6,
+    ):
+        self.problem = problem
+        self.u = problem.u
+        self.contact = problem.contact
+        self._k = stiffness
+        self.stiffness = float(stiffness.value)
+        self.anchor = anchor
+        self.rtol = float(rtol)
+        self.max_solves = int(max_solves)
+        self.decrease = float(decrease)
+        self.inner_rtol = float(inner_rtol)
+        #: damped solves in the last :meth:`solve`
+        self.damped_solves = 0
+
+    @property
+    def snes(self):
+        """The wrapped problem's SNES (if any)."""
+        return getattr(self.problem, "snes", None)
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult:
+        """Damped solves until ``u`` settles, then one undamped solve (collective)."""
+        comm = self.u.function_space.mesh.comm
+        start = self.u.x.array.copy()
+        iterations, rejected, norms = 0, 0, []
+        self._k.value = self.stiffness
+        self.damped_solves = 0
+        result = None
+        first_norm = None
+        try:
+            for j in range(self.max_solves):
+                self._k.value = self.stiffness * self.decrease**j
+                self.anchor.x.array[:] = self.u.x.array
+                with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
+                    result = self.problem.solve(raise_on_failure=False)
+                if first_norm is None and len(result.residual_norms):
+                    first_norm = float(result.residual_norms[0])
+                self.damped_solves += 1
+                iterations += result.iterations
+                rejected += result.rejected_states
+                norms.append(np.asarray(result.residual_norms))
+                r = result.residual_norms
+                if not result.converged:
+                    # a damped solve only has to make progress: the undamped solve at the end
+                    # decides (seen on DOLFINx 0.11: the energy line search stopped a damped
+                    # solve at 7e-5 of its initial residual)
+                    if not (len(r) and np.isfinite(r[-1]) and r[-1] <= 1e-3 * r[0]):
+                        break
+                    result = dataclasses.replace(result, converged=True)
+                local = self.u.x.array
+                step = comm.allreduce(
+                    float(np.max(np.abs(local - self.anchor.x.array))), op=MPI.MAX
+                )
+                total = comm.allreduce(float(np.max(np.abs(local - start))), op=MPI.MAX)
+                if step <= self.rtol * total or self.decrease ** (j + 1) < 1e-6:
+                    break
+            if result is not None and result.converged:
+                self._k.value = 0.0
+                with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
+                    result = self.problem.solve(raise_on_failure=False)
+                iterations += result.iterations
+                rejected += result.rejected_states
+                norms.append(np.asarray(result.residual_norms))
+        finally:
+            self._k.value = 0.0
+        out = SolveResult(
+            result.converged, result.reason, iterations, np.concatenate(norms), rejected,
+            result.min_det_F,
+        )  # fmt: skip
+        if raise_on_failure and not out.converged:
+            raise RuntimeError(out.failure_message())
+        return out

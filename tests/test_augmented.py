@@ -1,0 +1,197 @@
+"""Augmented Lagrangian (paper section 8.3): the pair kernel with nodal pressures, its exact
+derivatives, the Uzawa moments, and the Uzawa driver on the contact patch test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_kernels import fd_derivatives, random_configs, rel_err, split
+from test_validation import PATCH_PRESSURE, _report, _solve_patch
+
+from fenics_matdepth.contact.kernels import (
+    augmented_pair_energy,
+    pair_energy,
+    pressure_moments,
+)
+from fenics_matdepth.geometry.clip import MAX_POLYGON_VERTICES, _intersection_polygon
+
+EPS = 3.0
+FD_RTOL = 1e-6
+
+
+def _polygon(x_tri, x_tet):
+    mu = np.empty((2, MAX_POLYGON_VERTICES, 3))
+    vlab = np.empty((2, MAX_POLYGON_VERTICES, 2), dtype=np.int64)
+    elab = np.empty((2, MAX_POLYGON_VERTICES), dtype=np.int64)
+    n = _intersection_polygon(x_tri, x_tet, mu, vlab, elab)
+    return mu[0, :n].copy()
+
+
+def _quadrature(x_tri, x_tet, depth, integrand):
+    """``int_{T cap K} integrand(mu, g) dA`` by the edge-midpoint rule (exact for quadratics)
+    on a fan of the intersection polygon; ``g`` from barycentric coordinates computed here."""
+    mu = _polygon(x_tri, x_tet)
+    e = (x_tet[1:] - x_tet[0]).T
+
+    def depth_at(y):
+        lam123 = np.linalg.solve(e, y - x_tet[0])
+        return depth @ np.concatenate(([1.0 - lam123.sum()], lam123))
+
+    a2 = np.linalg.norm(np.cross(x_tri[1] - x_tri[0], x_tri[2] - x_tri[0]))
+    total = 0.0
+    for k in range(1, len(mu) - 1):
+        tri = mu[[0, k, k + 1]]
+        area = 0.5 * abs(
+            (tri[1, 1] - tri[0, 1]) * (tri[2, 2] - tri[0, 2])
+            - (tri[1, 2] - tri[0, 2]) * (tri[2, 1] - tri[0, 1])
+        )
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            m = 0.5 * (tri[a] + tri[b])
+            total += area / 3.0 * integrand(m, depth_at(m @ x_tri)) * a2
+    return total
+
+
+def _pressures(seed):
+    return np.random.default_rng(seed).uniform(0.5, 2.0, size=3)
+
+
+def test_zero_pressure_is_the_penalty_kernel():
+    """With all nodal pressures 0 the augmented kernel returns the plain kernel's numbers."""
+    for x_tri, x_tet, depth in random_configs(11, 10):
+        plain = pair_energy(x_tri, x_tet, depth, EPS)
+        aug = augmented_pair_energy(x_tri, x_tet, depth, EPS, np.zeros(3))
+        assert aug[0] == plain[0]
+        assert np.array_equal(aug[1], plain[1]) and np.array_equal(aug[2], plain[2])
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_energy_against_quadrature(seed):
+    """``int (p g + eps/2 g^2) dA`` with p linear on the triangle, against an independent
+    quadrature over the intersection polygon."""
+    for x_tri, x_tet, depth in random_configs(seed, 10):
+        p = _pressures(seed)
+        energy = augmented_pair_energy(x_tri, x_tet, depth, EPS, p)[0]
+        reference = _quadrature(
+            x_tri, x_tet, depth, lambda mu, g, p=p: (p @ mu) * g + 0.5 * EPS * g * g
+        )
+        assert energy == pytest.approx(reference, rel=1e-10)
+        assert energy > pair_energy(x_tri, x_tet, depth, EPS)[0]  # p > 0 and g > 0
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_gradient_hessian_finite_differences(seed):
+    for x_tri, x_tet, depth in random_configs(seed, 12):
+        p = _pressures(seed)
+
+        def f(x, p=p, depth=depth):
+            return augmented_pair_energy(*split(x), depth, EPS, p)
+
+        x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
+        _, grad, hess = f(x0)
+        g_fd, h_fd = fd_derivatives(f, x0)
+        assert rel_err(grad, g_fd) < FD_RTOL
+        assert rel_err(hess, h_fd) < FD_RTOL
+        assert np.abs(hess - hess.T).max() <= 1e-12 * np.abs(hess).max()
+
+
+def test_derivatives_split_tetrahedron():
+    """A tetrahedron split around its centroid (thin layers): derivatives still exact."""
+    x_tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    depth = np.zeros(4)
+    x_tri = np.array([[-0.3, 0.2, 0.3], [0.8, -0.2, 0.1], [0.1, 0.9, 0.2]])
+    p = np.array([1.0, 0.4, 2.0])
+
+    def f(x):
+        return augmented_pair_energy(*split(x), depth, EPS, p, centroid_depth=0.15)
+
+    x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
+    energy, grad, hess = f(x0)
+    assert energy > 0.0
+    g_fd, h_fd = fd_derivatives(f, x0)
+    assert rel_err(grad, g_fd) < FD_RTOL
+    assert rel_err(hess, h_fd) < FD_RTOL
+
+
+def test_pressure_moments():
+    """``int mu_i g dA`` is the derivative of the energy with respect to p_i (the energy is
+    linear in p), and ``int mu_i dA`` sums to the polygon's area; both against quadrature."""
+    for x_tri, x_tet, depth in random_configs(7, 10):
+        gmom, amom = pressure_moments(x_tri, x_tet, depth)
+        for i in range(3):
+            ref_g = _quadrature(x_tri, x_tet, depth, lambda mu, g, i=i: mu[i] * g)
+            ref_a = _quadrature(x_tri, x_tet, depth, lambda mu, g, i=i: mu[i])
+            assert gmom[i] == pytest.approx(ref_g, rel=1e-10)
+            assert amom[i] == pytest.approx(ref_a, rel=1e-10)
+            dp = np.zeros(3)
+            dp[i] = 0.5
+            base = np.full(3, 1.0)
+            slope = (
+                augmented_pair_energy(x_tri, x_tet, depth, EPS, base + dp)[0]
+                - augmented_pair_energy(x_tri, x_tet, depth, EPS, base - dp)[0]
+            )
+            assert slope == pytest.approx(gmom[i], rel=1e-8)
+        area = 2.0 * pair_energy(x_tri, x_tet, np.ones(4), EPS)[0] / EPS
+        assert amom.sum() == pytest.approx(area, rel=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# Uzawa driver: the contact patch test (tests/test_validation.py) with a soft penalty
+# ------------------------------------------------------------------------------------------
+
+
+def test_patch_augmented_lagrangian():
+    """A soft penalty (eps h / E ~ 1.4) leaves an overlap of p / (2 eps) and a pressure a few %
+    off uniform; the augmented Lagrangian brings the overlap below the tolerance everywhere
+    (``max_penetration``: over every intersection polygon, the footprint's edges included) and
+    the pressure to uniform within 1 % over every column of the upper mesh."""
+    penalty = 10.0
+    plain = _solve_patch(penalty)
+    tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)  # 10 % of the penalty's overlap
+    out = _solve_patch(penalty, augmented={"tol": tol, "max_updates": 10})
+    solver = out["solver"]
+    p = PATCH_PRESSURE
+    diag = solver.diagnostics()
+    overlap_plain = plain["contact"].max_penetration()
+    _report(
+        f"\npatch, eps = {penalty}: penalty overlap {overlap_plain:.3e}, columns "
+        f"[{plain['pressure'].min() / p:.4f}, {plain['pressure'].max() / p:.4f}] p, "
+        f"{plain['iterations']} Newton it; augmented: {diag['updates']} updates, "
+        f"{diag['newton_iterations']} Newton it, overlap {diag['overlap']:.3e} "
+        f"({diag['overlap_tol']:.2f} tol, {diag['overlap_h']:.2e} h), columns "
+        f"[{out['pressure'].min() / p:.5f}, {out['pressure'].max() / p:.5f}] p, "
+        f"interior [{out['interior_pressure'].min() / p:.5f}, "
+        f"{out['interior_pressure'].max() / p:.5f}]"
+    )
+    for r in solver.history:
+        _report(f"  {r}")
+    assert diag["overlap"] <= tol
+    assert out["contact"].max_penetration() <= tol
+    assert overlap_plain > 10 * tol  # the penalty alone is far off
+    assert out["total_force"] == pytest.approx(p, rel=1e-6)
+    assert np.all(np.abs(out["pressure"] / p - 1.0) < 0.01)
+    # the multipliers carry the load: nodal pressures near p on each surface's share
+    assert diag["updates"] >= 1
+
+
+# serial only: on 2 ranks the last, undamped solve stalled at 1e-5 of the first residual in 2 of
+# 5 runs (round-off of the off-process sums; docs/solvers.md, known limitation)
+@pytest.mark.serial
+def test_rigid_mode_damping_floating_cube():
+    """The patch test's upper cube held only by contact, started touching (no initial sink):
+    the damped proximal solves plus the final undamped solve reach the plain solution."""
+    penalty = 10.0
+    plain = _solve_patch(penalty)
+    # a free cube moves p / k in the first damped solve: half the penalty's overlap p / (2 eps)
+    # (with a fixed k giving a motion of h / 10, 28 times that overlap, the cube sank so deep
+    # that the second damped solve stopped in the line search; with this k fixed, the proximal
+    # solves crept, each reducing the residual by 10 %)
+    damped = _solve_patch(penalty, damping=PATCH_PRESSURE / (0.25 * PATCH_PRESSURE / penalty))
+    _report(
+        f"\nfloating cube: {damped['solver'].damped_solves} damped solves, "
+        f"{damped['iterations']} Newton it (plain from a sunk start: {plain['iterations']}); "
+        f"overlap {damped['overlap']:.6e} vs {plain['overlap']:.6e}"
+    )
+    assert damped["solver"].damped_solves >= 2
+    assert damped["total_force"] == pytest.approx(PATCH_PRESSURE, rel=1e-6)
+    assert np.allclose(damped["pressure"], plain["pressure"], rtol=1e-5, atol=0.0)
+    assert damped["overlap"] == pytest.approx(plain["overlap"], rel=1e-4)
