@@ -873,13 +873,9 @@ def _area_pairs_into(
 
 
 @njit(cache=True)
-def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
-    """Like `_area_pairs`, but returns only the intersecting pairs (saves memory).
-
-    Returns:
-        ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs
-        (shapes ``(na,)``, ``(na, 21)``, ``(na, 21, 21)``; empty first axis when not wanted).
-    """
+def _intersecting(x, tri, tet, pair_tri, pair_tet):
+    """Indices of the pairs whose triangle meets the tetrahedron (the exact test of
+    ``geometry.clip``), in order."""
     flags = np.empty(pair_tri.shape[0], dtype=np.bool_)
     na = _intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
     active = np.empty(na, dtype=INDEX)
@@ -888,6 +884,18 @@ def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_gra
         if flags[p]:
             active[m] = p
             m += 1
+    return active
+
+
+@njit(cache=True)
+def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
+    """Like `_area_pairs`, but returns only the intersecting pairs (saves memory).
+
+    Returns:
+        ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs
+        (shapes ``(na,)``, ``(na, 21)``, ``(na, 21, 21)``; empty first axis when not wanted).
+    """
+    active = _intersecting(x, tri, tet, pair_tri, pair_tet)
     energy, grad, hess = _area_pairs(
         x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, want_grad, want_hess
     )
@@ -1007,14 +1015,7 @@ def _area_pairs_augmented_active(
     Returns:
         ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs.
     """
-    flags = np.empty(pair_tri.shape[0], dtype=np.bool_)
-    na = _intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
-    active = np.empty(na, dtype=INDEX)
-    m = 0
-    for p in range(pair_tri.shape[0]):
-        if flags[p]:
-            active[m] = p
-            m += 1
+    active = _intersecting(x, tri, tet, pair_tri, pair_tet)
     energy, grad, hess = _area_pairs_augmented(
         x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, pressure, want_grad,
         want_hess,
