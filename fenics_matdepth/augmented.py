@@ -138,7 +138,8 @@ class AugmentedLagrangian:
         pressure: the nodal pressures (global vertex numbering, the same on every rank).
         tolerance: the overlap accepted (L).
         history: one :class:`UzawaUpdate` per inner solve of the last :meth:`solve`.
-        total_updates, total_newton_iterations: sums over every :meth:`solve` so far.
+        total_updates: pressure updates summed over every :meth:`solve` so far.
+        total_newton_iterations: Newton iterations summed over every :meth:`solve` so far.
     """
 
     def __init__(

@@ -3,8 +3,9 @@
 A rank holds vertices it owns and vertices owned by other ranks (the ghosts of its own cells
 and the vertices of halo tetrahedra). A :class:`VertexExchange` is built once per halo (set
 up with a collective count exchange) and then moves, point to point between the ranks
-concerned only, per-vertex values of any width from owners to holders (:meth:`pull`) or sums
-holders' contributions onto the owners (:meth:`push_add`).
+concerned only, per-vertex values of any width from owners to holders
+(:meth:`VertexExchange.pull`) or sums holders' contributions onto the owners
+(:meth:`VertexExchange.push_add`).
 """
 
 from __future__ import annotations
