@@ -89,6 +89,21 @@ def build(comm, lower, upper):
     return create_tetrahedral_mesh(comm, cells, np.vstack((xa, xb))), cells.shape[0]
 
 
+def clamp_and_move(mesh, V):
+    """Dirichlet conditions of the two blocks: the lower block's bottom (z = 0) clamped, the
+    upper block's top (z = 1) moved by the returned Function's values."""
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.0))
+    moved = dolfinx.fem.Function(V)
+    bcs = [
+        dolfinx.fem.dirichletbc(
+            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
+        ),
+        dolfinx.fem.dirichletbc(moved, dolfinx.fem.locate_dofs_topological(V, 2, top)),
+    ]
+    return bcs, moved
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--lower", type=int, nargs=3, default=(24, 24, 8))
@@ -106,15 +121,7 @@ def main():
     F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
     psi = fm.materials.neo_hookean(F_def, mu, kappa)
     residual = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.0))
-    push = dolfinx.fem.Function(V)
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
-        ),
-        dolfinx.fem.dirichletbc(push, dolfinx.fem.locate_dofs_topological(V, 2, top)),
-    ]
+    bcs, push = clamp_and_move(mesh, V)
     moduli = fm.materials.small_strain_moduli(fm.materials.neo_hookean, mu=mu, kappa=kappa)
     penalty = fm.propose_penalty(mesh, moduli.stiffest, factor=10.0)
     depth = fm.material_depth(mesh)

@@ -36,7 +36,7 @@ import ufl  # noqa: E402
 import fenics_matdepth as fm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_newton import build  # noqa: E402
+from bench_newton import build, clamp_and_move  # noqa: E402
 
 TARGET_SECONDS = 180.0
 PRESS, SLIDE = 0.04, 0.3
@@ -73,15 +73,7 @@ def main() -> None:
     F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
     psi = fm.materials.neo_hookean(F_def, mu, kappa)
     residual = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.0))
-    moved = dolfinx.fem.Function(V)
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
-        ),
-        dolfinx.fem.dirichletbc(moved, dolfinx.fem.locate_dofs_topological(V, 2, top)),
-    ]
+    bcs, moved = clamp_and_move(mesh, V)
     # the penalty of the soft body's modulus: the soft block's base is what penetrates
     penalty = fm.propose_penalty(mesh, 1.0, factor=10.0)
     contact = fm.ContactOperator(u, depth, penalty=penalty)

@@ -1023,6 +1023,49 @@ def _area_pairs_augmented_active(
     return active, energy, grad, hess
 
 
+@njit(inline="always")
+def _polygon_work():
+    """Buffers of `_sub_polygon`: xs (3, 3), xt (4, 3), dt (4,), grads (4, 3), lam (3, 4),
+    mu, vlab, elab (the clipped polygon, as `_clip` fills them) and gi (3,)."""
+    return (
+        np.empty((3, 3), dtype=FLOAT),
+        np.empty((4, 3), dtype=FLOAT),
+        np.empty(4, dtype=FLOAT),
+        np.empty((4, 3), dtype=FLOAT),
+        np.empty((3, 4), dtype=FLOAT),
+        np.empty((2, _NV, 3), dtype=FLOAT),
+        np.empty((2, _NV, 2), dtype=INDEX),
+        np.empty((2, _NV), dtype=INDEX),
+        np.empty(3, dtype=FLOAT),
+    )
+
+
+@njit(inline="always")
+def _gather_triangle(x, tri, t, xs):
+    """Vertices of triangle t into xs (3, 3); returns twice its area."""
+    for a in range(3):
+        for r in range(3):
+            xs[a, r] = x[tri[t, a], r]
+    return _triangle_area2(xs)
+
+
+@njit(inline="always")
+def _sub_polygon(x, depth, tet, k, s, split, work):
+    """Clip the triangle in ``work[0]`` against tetrahedron k (sub-tetrahedron s when split):
+    the polygon in ``work[5]`` (parameter coordinates on the triangle, as `_clip` gives them)
+    and, in ``work[8]``, the depth ``g_K`` at the triangle's corners, extended affinely over
+    the parameter simplex. Returns the polygon's vertex count (0 for a flat tetrahedron)."""
+    xs, xt, dt, grads, lam, mu, vlab, elab, gi = work
+    _gather_tet(x, depth, tet, k, s, split, xt, dt)
+    if _tet_gradients(xt, grads) == 0.0:
+        return 0
+    _barycentric_rows(xs, xt, grads, lam)
+    n = _clip(lam, mu, vlab, elab)
+    for i in range(3):
+        gi[i] = lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]
+    return n
+
+
 @njit(cache=True)
 def _area_pairs_pressure_moments(x, depth, tri, tet, pair_tri, pair_tet):
     """The integrals the Uzawa update of the nodal pressures needs, per pair and triangle vertex.
@@ -1043,36 +1086,18 @@ def _area_pairs_pressure_moments(x, depth, tri, tet, pair_tri, pair_tet):
     npairs = pair_tri.shape[0]
     gmom = np.zeros((npairs, 3), dtype=FLOAT)
     amom = np.zeros((npairs, 3), dtype=FLOAT)
-    grads = np.empty((4, 3), dtype=FLOAT)
-    lam = np.empty((3, 4), dtype=FLOAT)
-    xs = np.empty((3, 3), dtype=FLOAT)
-    xt = np.empty((4, 3), dtype=FLOAT)
-    mu = np.empty((2, _NV, 3), dtype=FLOAT)
-    vlab = np.empty((2, _NV, 2), dtype=INDEX)
-    elab = np.empty((2, _NV), dtype=INDEX)
-    gi = np.empty(3, dtype=FLOAT)
-    dt = np.empty(4, dtype=FLOAT)
+    work = _polygon_work()
+    xs, mu, gi = work[0], work[5], work[8]
     for p in range(npairs):
-        for a in range(3):
-            for r in range(3):
-                xs[a, r] = x[tri[pair_tri[p], a], r]
-        a2 = _triangle_area2(xs)
+        a2 = _gather_triangle(x, tri, pair_tri[p], xs)
         if a2 == 0.0:
             continue
         k = pair_tet[p]
         split = _is_split(tet, k)
         for s in range(4 if split else 1):
-            _gather_tet(x, depth, tet, k, s, split, xt, dt)
-            if _tet_gradients(xt, grads) == 0.0:
-                continue
-            _barycentric_rows(xs, xt, grads, lam)
-            n = _clip(lam, mu, vlab, elab)
+            n = _sub_polygon(x, depth, tet, k, s, split, work)
             if n < 3:
                 continue
-            for i in range(3):
-                gi[i] = (
-                    lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]
-                )
             # fan from the parameter origin (mu = e_0), signed areas; dA = |n| dxi = a2 dxi
             h0 = gi[0]
             for v in range(n):
@@ -1157,35 +1182,16 @@ def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
         (np,) maximum depth per pair.
     """
     out = np.zeros(pair_tri.shape[0], dtype=FLOAT)
-    grads = np.empty((4, 3), dtype=FLOAT)
-    lam = np.empty((3, 4), dtype=FLOAT)
-    xs = np.empty((3, 3), dtype=FLOAT)
-    xt = np.empty((4, 3), dtype=FLOAT)
-    mu = np.empty((2, _NV, 3), dtype=FLOAT)
-    vlab = np.empty((2, _NV, 2), dtype=INDEX)
-    elab = np.empty((2, _NV), dtype=INDEX)
-    gi = np.empty(3, dtype=FLOAT)
-    dt = np.empty(4, dtype=FLOAT)
+    work = _polygon_work()
+    xs, mu, gi = work[0], work[5], work[8]
     for p in range(pair_tri.shape[0]):
-        for a in range(3):
-            for r in range(3):
-                xs[a, r] = x[tri[pair_tri[p], a], r]
-        if _triangle_area2(xs) == 0.0:
+        if _gather_triangle(x, tri, pair_tri[p], xs) == 0.0:
             continue
         k = pair_tet[p]
         split = _is_split(tet, k)
         best = 0.0
         for s in range(4 if split else 1):
-            _gather_tet(x, depth, tet, k, s, split, xt, dt)
-            if _tet_gradients(xt, grads) == 0.0:
-                continue
-            _barycentric_rows(xs, xt, grads, lam)
-            n = _clip(lam, mu, vlab, elab)
-            # depth at the triangle corners, extended affinely over the parameter simplex
-            for i in range(3):
-                gi[i] = (
-                    lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]
-                )
+            n = _sub_polygon(x, depth, tet, k, s, split, work)
             for v in range(n):
                 g = mu[0, v, 0] * gi[0] + mu[0, v, 1] * gi[1] + mu[0, v, 2] * gi[2]
                 best = max(best, g)
