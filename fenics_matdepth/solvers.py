@@ -39,6 +39,7 @@ __all__ = [
     "LoadStep",
     "NonlinearContactProblem",
     "SolveResult",
+    "rigid_body_modes",
     "solve_load_steps",
 ]
 
@@ -54,11 +55,33 @@ _DEFAULT_OPTIONS = {
     "pc_factor_mat_solver_type": "mumps",
 }
 
+#: From this many global dofs on, ContactProblem's default linear solver is GMRES preconditioned
+#: by GAMG with the rigid-body near-nullspace (_AMG_OPTIONS) instead of MUMPS LU. Measured with
+#: benchmarks/bench_linear.py on the press's contact Jacobian (CPU seconds of set-up + solve):
+#: 24.7k dofs LU 1.24, GAMG 1.19; 92.3k dofs LU 12.2, GAMG 4.5; 282k dofs GAMG 16.9.
+AMG_MIN_DOFS = 50_000
+_AMG_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_gmres_restart": 200,
+    "ksp_rtol": 1e-9,
+    "ksp_max_it": 1000,
+    "pc_type": "gamg",
+    "pc_gamg_threshold": 0.01,
+}
+
 #: The energy line search hands over to the residual norm once the residual has fallen by
 #: this factor in a solve, or once an iteration changed it by less than STALL_RTOL (relative);
 #: see ContactProblem._start_iteration.
 MERIT_SWITCH_RTOL = 1e-5
 STALL_RTOL = 1e-3
+
+#: ContactProblem stops with DIVERGED_LINE_SEARCH after this many consecutive iterations
+#: that changed the residual norm by less than NO_PROGRESS_RTOL (relative): the line search
+#: is taking steps of no length (measured: a patch-test solve sat at the same residual for 45
+#: iterations until the iteration limit), so a caller (load stepping, the augmented
+#: Lagrangian's update halving) can react at once.
+NO_PROGRESS_ITERATIONS = 3
+NO_PROGRESS_RTOL = 1e-10
 
 #: NonlinearContactProblem halves a Newton step at most this many times while it would
 #: invert an element.
@@ -71,6 +94,14 @@ TIMING_KEYS = (
     "contact_assembly",
     "linear_solve",
 )
+
+
+def _reason_name(reason: int) -> str:
+    """``", NAME"`` of a SNES converged reason, or ``""`` if PETSc has no name for it."""
+    for name, value in vars(PETSc.SNES.ConvergedReason).items():
+        if value == reason and not name.startswith("_") and name.isupper():
+            return f", {name}"
+    return ""
 
 
 @dataclasses.dataclass
@@ -98,7 +129,8 @@ class SolveResult:
     def failure_message(self) -> str:
         """Why the solve failed, with the residual history."""
         return (
-            f"contact Newton solve did not converge (reason {self.reason}) after "
+            "contact Newton solve did not converge "
+            f"(reason {self.reason}{_reason_name(self.reason)}) after "
             f"{self.iterations} iterations; residual norms: "
             + ", ".join(f"{r:.3e}" for r in self.residual_norms)
             + ". Reduce the load step (solve_load_steps cuts it automatically), or lower the "
@@ -168,9 +200,16 @@ class ContactAssembler:
         self.cells = CellDeterminants(u.function_space)
         self.matrix = contact.create_matrix(a)
         self.pattern_rebuilds = 0
+        #: rigid-body modes set on every matrix (for an AMG preconditioner), or None
+        self.near_nullspace: PETSc.NullSpace | None = None
         #: trial states found inadmissible (det F <= 0 or a non-finite residual or energy)
         self.rejected_states = 0
         self._scratch = u.x.petsc_vec.duplicate()
+
+    def set_near_nullspace(self, modes: PETSc.NullSpace) -> None:
+        """Set ``modes`` as the near-nullspace of the matrix, now and after every rebuild."""
+        self.near_nullspace = modes
+        self.matrix.setNearNullSpace(modes)
 
     def set_state(self, x: PETSc.Vec) -> None:
         """Make ``u`` (ghosts included) equal ``x`` and update the contact state there."""
@@ -246,6 +285,8 @@ class ContactAssembler:
             return False
         with self.watch("contact_update"):
             matrix = self.contact.create_matrix(self.a)
+        if self.near_nullspace is not None:
+            matrix.setNearNullSpace(self.near_nullspace)
         register(matrix)
         self.matrix.destroy()
         self.matrix = matrix
@@ -266,6 +307,34 @@ class ContactAssembler:
         for obj in (self.matrix, self._scratch):
             if obj is not None:
                 obj.destroy()
+
+
+def rigid_body_modes(V: dolfinx.fem.FunctionSpace) -> PETSc.NullSpace:
+    """The six rigid-body modes of a P1 displacement space (orthonormal, owned dofs) as a
+    PETSc null space: the near-nullspace an AMG preconditioner (GAMG) needs for elasticity
+    (collective)."""
+    comm = V.mesh.comm
+    n = V.dofmap.index_map.size_local
+    x = V.tabulate_dof_coordinates()[:n]
+    count = comm.allreduce(n)
+    x = x - comm.allreduce(x.sum(axis=0)) / max(count, 1)
+    modes = np.zeros((6, n, 3))
+    for i in range(3):
+        modes[i, :, i] = 1.0
+    modes[3, :, 0], modes[3, :, 1] = -x[:, 1], x[:, 0]
+    modes[4, :, 1], modes[4, :, 2] = -x[:, 2], x[:, 1]
+    modes[5, :, 2], modes[5, :, 0] = -x[:, 0], x[:, 2]
+    vecs = []
+    for k in range(6):
+        vec = PETSc.Vec().createMPI((3 * n, PETSc.DECIDE), bsize=3, comm=comm)
+        vec.setArray(modes[k].ravel())
+        vecs.append(vec)
+    # Gram-Schmidt across ranks
+    for k, vec in enumerate(vecs):
+        for other in vecs[:k]:
+            vec.axpy(-vec.dot(other), other)
+        vec.normalize()
+    return PETSc.NullSpace().create(vectors=vecs, comm=comm)
 
 
 def _check_problem_inputs(u, contact, bcs) -> None:
@@ -314,7 +383,10 @@ class ContactProblem:
             sit on their values (the energy is not a merit function while they move).
         petsc_options_prefix: prefix of this problem's PETSc options.
         petsc_options: options set under the prefix (defaults: newtonls, bt line search, LU with
-            MUMPS, rtol 1e-10, atol 1e-12, at most 50 iterations).
+            MUMPS, rtol 1e-10, atol 1e-12, at most 50 iterations). From AMG_MIN_DOFS global
+            dofs on, unless ``ksp_type`` or ``pc_type`` is given, the linear solver is GMRES
+            with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
+            (:func:`rigid_body_modes`) are set as the matrix's near-nullspace.
 
     Attributes:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
@@ -358,20 +430,28 @@ class ContactProblem:
         self._residuals_reused = 0
         self.snes = PETSc.SNES().create(comm)
         self.snes.setOptionsPrefix(self.prefix)
+        options = dict(_DEFAULT_OPTIONS)
+        user = petsc_options or {}
+        num_dofs = u.function_space.dofmap.index_map.size_global * 3
+        if num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user):
+            options.update(_AMG_OPTIONS)
         opts = PETSc.Options()
         opts.prefixPush(self.prefix)
-        for key, value in {**_DEFAULT_OPTIONS, **(petsc_options or {})}.items():
+        for key, value in {**options, **user}.items():
             opts[key] = value
         opts.prefixPop()
         self.snes.setFunction(self._residual, self._b)
         self.snes.setJacobian(self._jacobian, self._A, self._A)
         self.snes.setUpdate(self._start_iteration)
+        self.snes.setConvergenceTest(self._converged)
         if self._energy is not None:
             self.snes.setObjective(self._objective)
             self.snes.setLineSearchPreCheck(self._check_direction)
         self.snes.setFromOptions()
         ksp = self.snes.getKSP()
         ksp.setFromOptions()
+        if ksp.getPC().getType() == "gamg":
+            self.assembler.set_near_nullspace(rigid_body_modes(u.function_space))
         ksp.setPreSolve(self._ksp_started)
         ksp.setPostSolve(self._ksp_finished)
 
@@ -423,6 +503,36 @@ class ContactProblem:
             return 0.5 * self._b_trial.norm() ** 2
         self._set_state(x)
         return self.assembler.total_energy()
+
+    def _converged(self, snes: PETSc.SNES, iteration: int, norms: tuple) -> int:
+        """PETSc's default convergence test (absolute, relative and step tolerances, the
+        iteration limit, divergence and NaN), plus a stop when the line search makes no
+        progress for NO_PROGRESS_ITERATIONS iterations (DIVERGED_LINE_SEARCH)."""
+        reasons = PETSc.SNES.ConvergedReason
+        xnorm, step_norm, fnorm = norms
+        rtol, atol, stol, max_it = snes.getTolerances()
+        if not np.isfinite(fnorm):
+            return reasons.DIVERGED_FNORM_NAN
+        if iteration == 0:
+            self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
+            return reasons.CONVERGED_FNORM_ABS if fnorm < atol else reasons.ITERATING
+        if fnorm < atol:
+            return reasons.CONVERGED_FNORM_ABS
+        if fnorm <= rtol * self._initial_norm:
+            return reasons.CONVERGED_FNORM_RELATIVE
+        if step_norm < stol * xnorm:
+            return reasons.CONVERGED_SNORM_RELATIVE
+        divergence = snes.getDivergenceTolerance()
+        if divergence > 0.0 and fnorm > divergence * self._initial_norm:
+            return reasons.DIVERGED_DTOL
+        stalled = abs(fnorm - self._previous_norm) <= NO_PROGRESS_RTOL * self._previous_norm
+        self._no_progress = self._no_progress + 1 if stalled else 0
+        self._previous_norm = fnorm
+        if self._no_progress >= NO_PROGRESS_ITERATIONS:
+            return reasons.DIVERGED_LINE_SEARCH
+        if iteration >= max_it:
+            return reasons.DIVERGED_MAX_IT
+        return reasons.ITERATING
 
     def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> None:
         """Line-search pre-check: the energy judges this step only if the step goes downhill

@@ -79,6 +79,73 @@ def test_block_pressed_on_block_converges_quadratically():
     assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
 
 
+def test_convergence_test_stops_a_line_search_without_progress():
+    """ContactProblem's convergence test: PETSc's tolerances as SNES holds them, and a stop
+    (DIVERGED_LINE_SEARCH) once NO_PROGRESS_ITERATIONS iterations in a row left the residual
+    norm unchanged, instead of running on to the iteration limit."""
+    from fenics_matdepth.solvers import NO_PROGRESS_ITERATIONS
+
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    reasons = PETSc.SNES.ConvergedReason
+    rtol, atol, _, max_it = problem.snes.getTolerances()
+
+    def run(norms):
+        return [problem._converged(problem.snes, i, (1.0, 1.0, f)) for i, f in enumerate(norms)]
+
+    stuck = run([1.0, 0.5] + [0.5] * NO_PROGRESS_ITERATIONS)
+    assert stuck[:-1] == [reasons.ITERATING] * (len(stuck) - 1)
+    assert stuck[-1] == reasons.DIVERGED_LINE_SEARCH
+    # slow progress is not a stall
+    assert set(run([1.0] + [0.5 * (1.0 - 1e-6 * k) for k in range(10)])) == {reasons.ITERATING}
+    assert run([1.0, 0.1 * rtol])[-1] == reasons.CONVERGED_FNORM_RELATIVE
+    assert run([1.0, 0.1 * atol])[-1] == reasons.CONVERGED_FNORM_ABS
+    assert run([1.0, np.nan])[-1] == reasons.DIVERGED_FNORM_NAN
+    assert run([1.0] + [0.9**k for k in range(1, max_it + 1)])[-1] == reasons.DIVERGED_MAX_IT
+    # and a real solve still converges through it
+    assert problem.solve().converged
+
+
+def test_amg_default_above_the_size_threshold(monkeypatch):
+    """Above AMG_MIN_DOFS the default linear solver is GMRES + GAMG with the rigid-body
+    near-nullspace on the matrix; the contact solve reaches the LU solution. A user's own
+    ``pc_type`` keeps its choice."""
+    from fenics_matdepth import solvers
+
+    comm = MPI.COMM_WORLD
+    solutions = {}
+    for name in ("lu", "amg"):
+        monkeypatch.setattr(solvers, "AMG_MIN_DOFS", 10**12 if name == "lu" else 0)
+        mesh, V, u, residual, energy = _stacked_blocks(comm)
+        bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+        contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+        problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+        pc = problem.snes.getKSP().getPC()
+        assert pc.getType() == ("lu" if name == "lu" else "gamg")
+        if name == "amg":
+            modes = problem.assembler.matrix.getNearNullSpace()
+            assert modes is not None and len(modes.getVecs()) == 6
+            # the modes are rigid motions: the bulk stiffness (no Dirichlet rows) maps them to 0
+            bulk = dolfinx.fem.petsc.assemble_matrix(problem._J)
+            bulk.assemble()
+            image = modes.getVecs()[5].duplicate()
+            bulk.mult(modes.getVecs()[5], image)
+            assert image.norm() <= 1e-10 * bulk.norm()
+        result = problem.solve()
+        assert result.converged
+        solutions[name] = u.x.petsc_vec.copy()
+    diff = solutions["amg"].copy()
+    diff.axpy(-1.0, solutions["lu"])
+    assert diff.norm() <= 1e-7 * solutions["lu"].norm()
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, petsc_options={"pc_type": "jacobi"})
+    assert problem.snes.getKSP().getPC().getType() == "jacobi"
+
+
 def test_linear_solve_time_includes_the_factorisation():
     """The reported linear-solve time covers the factorisation (PETSc's PCSetUp event, which
     its KSPSolve event leaves out) as well as the solve."""
