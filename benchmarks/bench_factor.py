@@ -77,16 +77,11 @@ def factorise(M: PETSc.Mat, ordering: int) -> tuple[float, float]:
     return first, again
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--lower", type=int, nargs=3, default=(24, 24, 8))
-    parser.add_argument("--upper", type=int, nargs=3, default=(16, 16, 8))
-    parser.add_argument("--sink", type=float, default=3e-4)
-    args = parser.parse_args()
-    comm = MPI.COMM_WORLD
-    if comm.size > 1:
-        raise RuntimeError("bench_factor.py runs serially (it times one process's CPU)")
-    mesh, num_tets = build(comm, args.lower, args.upper)
+def contact_jacobian(comm, lower, upper, sink: float):
+    """The bench_newton press with the upper block sunk rigidly by ``sink``: the Jacobian the
+    Newton solver factorises (bulk + contact pattern), the bulk form, the Dirichlet conditions,
+    the space and the operator."""
+    mesh, num_tets = build(comm, lower, upper)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
@@ -101,15 +96,27 @@ def main():
         )
     ]
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=215.0)
-    upper = contact.body_of_vertex[np.argmax(contact.surface.gathered()["X"][:, 2])]
-    u.x.array.reshape(-1, 3)[contact.body_of_vertex == upper, 2] = -args.sink
+    upper_body = contact.body_of_vertex[np.argmax(contact.surface.gathered()["X"][:, 2])]
+    u.x.array.reshape(-1, 3)[contact.body_of_vertex == upper_body, 2] = -sink
     contact.update()
     contact.set_bcs(bcs)
-
     A = contact.create_matrix(J)
     dolfinx.fem.petsc.assemble_matrix(A, J, bcs)
     A.assemble()
     contact.add_jacobian(A)
+    return A, J, bcs, V, contact, num_tets
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--lower", type=int, nargs=3, default=(24, 24, 8))
+    parser.add_argument("--upper", type=int, nargs=3, default=(16, 16, 8))
+    parser.add_argument("--sink", type=float, default=3e-4)
+    args = parser.parse_args()
+    comm = MPI.COMM_WORLD
+    if comm.size > 1:
+        raise RuntimeError("bench_factor.py runs serially (it times one process's CPU)")
+    A, J, bcs, _, contact, num_tets = contact_jacobian(comm, args.lower, args.upper, args.sink)
     compact = _without_zeros(A)
     bulk = dolfinx.fem.petsc.create_matrix(J)
     dolfinx.fem.petsc.assemble_matrix(bulk, J, bcs)

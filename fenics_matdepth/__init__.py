@@ -29,6 +29,7 @@ from fenics_matdepth.solvers import (
     LoadStep,
     NonlinearContactProblem,
     SolveResult,
+    rigid_body_modes,
     solve_load_steps,
 )
 
@@ -59,6 +60,7 @@ __all__ = [
     "propose_penalty",
     "rotation_displacement",
     "rotation_matrix",
+    "rigid_body_modes",
     "solve_load_steps",
     "solve_time_steps",
 ]
