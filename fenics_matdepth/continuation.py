@@ -126,6 +126,8 @@ class PenaltyContinuation:
         history: one :class:`ContinuationStage` per stage solve (failed ones included) of the
             last :meth:`solve`.
         total_newton_iterations: Newton iterations summed over every :meth:`solve` so far.
+        total_stages: stage solves (failed ones included) summed over every :meth:`solve` so
+            far.
         total_retries: failed stages summed over every :meth:`solve` so far.
         timings: the wrapped problem's time split (``ContactProblem.timings``) summed over the
             stages of the last :meth:`solve` (empty if it keeps none).
@@ -162,6 +164,7 @@ class PenaltyContinuation:
         self.contact = contact
         self.history: list[ContinuationStage] = []
         self.total_newton_iterations = 0
+        self.total_stages = 0
         self.total_retries = 0
         self.timings: dict[str, float] = {}
 
@@ -253,6 +256,7 @@ class PenaltyContinuation:
         finally:
             self.contact.penalty = self.target
         self.total_newton_iterations += iterations
+        self.total_stages += len(self.history)
         if not converged:
             self.u.x.array[:] = start_state
         out = SolveResult(

@@ -165,7 +165,7 @@ def test_failed_stage_is_retried_with_a_smaller_growth():
     assert [s.penalty for s in solver.history] == pytest.approx(expected, rel=1e-12)
     assert [s.converged for s in solver.history] == [True, False] + [True] * 6
     assert result.iterations == 7 * 3 + 50
-    assert solver.total_retries == 1
+    assert solver.total_retries == 1 and solver.total_stages == 8
     assert problem.contact.penalty == 1000.0
     # each stage started from the last converged one (never from the failed NaN state)
     assert all(np.all(np.isfinite(s)) for s in fake.start_states)
