@@ -3,6 +3,8 @@ large penalty fails without continuation and converges with it, the retry and re
 
 from __future__ import annotations
 
+import types
+
 from mpi4py import MPI
 
 import numpy as np
@@ -189,3 +191,31 @@ def test_failure_restores_the_state_and_the_penalty():
         solver.solve()
     assert np.all(problem.u.x.array == 0.25)
     assert problem.contact.penalty == 1000.0
+
+
+def test_damping_only_in_the_first_stage():
+    """Wrapping a RigidModeDamping, the first stage runs the damped solves (falling k, then
+    k = 0) and the later stages the undamped problem alone: contact holds the body by then."""
+    comm = MPI.COMM_WORLD
+    problem, _ = _touching_problem(comm)
+    fake = _FailsOnLargeJumps(problem, limit=np.inf)
+    stiffness = types.SimpleNamespace(value=1.0)
+    anchor = types.SimpleNamespace(x=types.SimpleNamespace(array=problem.u.x.array.copy()))
+    seen = []
+    solve = fake.solve
+
+    def recording_solve(raise_on_failure=True):
+        seen.append(stiffness.value)
+        return solve(raise_on_failure)
+
+    fake.solve = recording_solve
+    damped = fm.RigidModeDamping(fake, stiffness, anchor, decrease=0.1)
+    solver = fm.PenaltyContinuation(damped, start=1.0, growth=10.0, target=100.0)
+    assert solver.solve().converged
+    # each fake solve moves u by 1: the damped solves never settle (step 1 of a total j + 1)
+    # and stop once the next k would fall below 1e-6 of its start, after 7 (k = 1 to 1e-6);
+    # then one undamped solve
+    first = [0.1**j for j in range(7)] + [0.0]
+    assert seen == pytest.approx(first + [0.0, 0.0], rel=1e-12, abs=0.0)
+    assert fake.penalties == pytest.approx([1.0] * 8 + [10.0, 100.0], rel=1e-12)
+    assert [s.newton_iterations for s in solver.history] == [8 * 3, 3, 3]
