@@ -100,10 +100,11 @@ class PenaltyContinuation:
     target (the last stage is the target itself), each from the previous stage's solution. A
     stage that fails is retried from the last converged stage with the growth factor's square
     root (``10 -> 3.16 -> 1.78``, kept for the rest of the solve: a failed stage costs the
-    problem's whole iteration limit), until the factor would fall below ``min_growth``. If the
-    first stage fails, or the retries run out, ``u`` is restored to where the solve started,
-    so load stepping can cut the step. The operator's penalty is the target after every
-    :meth:`solve`, converged or not.
+    problem's whole iteration limit), until the factor would fall below ``min_growth``. A first
+    stage that fails is retried from the starting state one growth factor higher (at the
+    latest at the target: the plain solve). If that fails too, or the retries run out, ``u`` is
+    restored to where the solve started, so load stepping can cut the step. The operator's
+    penalty is the target after every :meth:`solve`, converged or not.
 
     To combine with the other drivers: ``PenaltyContinuation(RigidModeDamping(problem, ...))``
     for a body free until contact (the first stage runs the damped solves, the later ones the
@@ -261,8 +262,16 @@ class PenaltyContinuation:
                 else:
                     self.total_retries += 1
                     retry = True
+                    if last is None:
+                        # the start is too soft for this state: start one growth factor higher
+                        # (at the latest the target, the plain solve)
+                        if penalty >= self.target:
+                            break
+                        self.u.x.array[:] = start_state
+                        penalty, first_norm = min(penalty * self.growth, self.target), None
+                        continue
                     growth = np.sqrt(growth)
-                    if last is None or growth < self.min_growth:
+                    if growth < self.min_growth:
                         break
                     self.u.x.array[:] = last[0]
                 penalty = min(last[1] * growth, self.target)

@@ -129,12 +129,13 @@ def test_continuation_in_load_steps_ends_on_the_plain_solution():
 
 
 class _FailsOnLargeJumps:
-    """Wraps a problem; a solve at a penalty more than ``limit`` times the last converged one
-    fails (leaving NaN in u, as a diverged solve would); a converged one adds 1 to u."""
+    """Wraps a problem; a solve at a penalty below ``fail_below`` or more than ``limit`` times
+    the last converged one fails (leaving NaN in u, as a diverged solve would); a converged
+    one adds 1 to u."""
 
-    def __init__(self, problem, limit: float):
+    def __init__(self, problem, limit: float, fail_below: float = 0.0):
         self.u, self.contact = problem.u, problem.contact
-        self.limit = limit
+        self.limit, self.fail_below = limit, fail_below
         self.converged_penalty = None
         self.start_states: list[np.ndarray] = []
         self.penalties: list[float] = []
@@ -144,7 +145,7 @@ class _FailsOnLargeJumps:
         self.start_states.append(self.u.x.array.copy())
         self.penalties.append(eps)
         last = self.converged_penalty
-        if last is not None and eps > self.limit * last * (1 + 1e-12):
+        if eps < self.fail_below or (last is not None and eps > self.limit * last * (1 + 1e-12)):
             self.u.x.array[:] = np.nan
             return SolveResult(False, -5, 50, np.array([1.0, 0.5]))
         self.u.x.array[:] += 1.0
@@ -172,6 +173,25 @@ def test_failed_stage_is_retried_with_a_smaller_growth():
     # each stage started from the last converged one (never from the failed NaN state)
     assert all(np.all(np.isfinite(s)) for s in fake.start_states)
     assert np.array_equal(problem.u.x.array, start + 7.0)
+
+
+def test_failed_first_stage_starts_higher():
+    """A first stage that fails (here below 50) is retried from the starting state one growth
+    factor higher; the target itself is the last try."""
+    comm = MPI.COMM_WORLD
+    problem, _ = _touching_problem(comm)
+    problem.u.x.array[:] = 0.5
+    fake = _FailsOnLargeJumps(problem, limit=np.inf, fail_below=50.0)
+    solver = fm.PenaltyContinuation(fake, start=1.0, growth=10.0, target=1000.0)
+    assert solver.solve().converged
+    assert fake.penalties == pytest.approx([1.0, 10.0, 100.0, 1000.0], rel=1e-12)
+    assert all(np.all(s == 0.5) for s in fake.start_states[:3])  # each first try from the start
+    assert np.all(problem.u.x.array == 2.5)
+    fake = _FailsOnLargeJumps(problem, limit=np.inf, fail_below=2000.0)
+    solver = fm.PenaltyContinuation(fake, start=1.0, growth=10.0, target=1000.0)
+    assert not solver.solve(raise_on_failure=False).converged
+    assert fake.penalties == pytest.approx([1.0, 10.0, 100.0, 1000.0], rel=1e-12)
+    assert np.all(problem.u.x.array == 2.5)
 
 
 def test_failure_restores_the_state_and_the_penalty():
