@@ -1,13 +1,12 @@
 """Penalty continuation within one solve: a moderate penalty first, then geometrically larger
 ones up to the one asked for, each solve warm-started from the last.
 
-A large penalty makes the contact energy stiff against the bulk: where a solve starts with an
-overlap much deeper than the one the penalty allows (a load step, a body brought into contact
-by a body force), the first Newton steps push the surfaces apart far beyond the solution and
-the line search or the step cutting of :func:`~fenics_matdepth.solve_load_steps` has to
-recover. At a moderate penalty the same solve is easy, and its solution is a good start for a
-ten times larger penalty: the surfaces then only have to move by the difference of the two
-overlaps, which is smaller than the first one.
+A large penalty makes the contact energy stiff against the bulk, and a Newton solve that starts
+far from its solution can stall (measured: a soft block pressed by one element height in one
+solve converges in 5 iterations at 10 E/h, and at 1000 E/h still has 2 % of its initial
+residual after 50). At a moderate penalty the same solve is easy, and its solution is a good
+start for a ten times larger penalty: the surfaces only have to move by the difference of the
+two overlaps (the same press: 4 + 3 + 5 iterations through 10, 100 and 1000 E/h).
 """
 
 from __future__ import annotations
