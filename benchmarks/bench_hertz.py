@@ -81,6 +81,9 @@ def run(
     steps: int,
     relaxation: float = 0.5,
     max_updates: int = 20,
+    start_factor: float = 10.0,
+    growth: float = 10.0,
+    damping: bool = True,
 ) -> dict:
     comm = MPI.COMM_WORLD
     hertz = _hertz_module()
@@ -101,8 +104,9 @@ def run(
     # the hemisphere is held only by contact: damp its rigid motion (a first proximal step of
     # a hundredth of the contact mesh size under the full body force), removed at each solve's
     # end (fm.RigidModeDamping)
-    damping, stiffness, anchor = fm.damping_energy(u, dx(hertz.SPHERE), density / (0.01 * res))
-    energy = energy + damping
+    damping_term, stiffness, anchor = fm.damping_energy(u, dx(hertz.SPHERE), density / (0.01 * res))
+    if damping:
+        energy = energy + damping_term
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
     zero = PETSc.ScalarType(0.0)
 
@@ -127,15 +131,26 @@ def run(
     a_theory = (3 * force * RADIUS / (4 * e_star)) ** (1 / 3)
     delta = a_theory**2 / RADIUS
     p0 = 3 * force / (2 * np.pi * a_theory**2)
-    solver = fm.RigidModeDamping(problem, stiffness, anchor)
+    solver = fm.RigidModeDamping(problem, stiffness, anchor) if damping else problem
+    if method == "continuation":
+        solver = fm.PenaltyContinuation(
+            solver, start=fm.propose_penalty(mesh, YOUNGS, factor=start_factor), growth=growth
+        )
     if method == "augmented":
         solver = fm.AugmentedLagrangian(
             solver, tol=tol_delta * delta, max_updates=max_updates, relaxation=relaxation
         )
+    stages = []  # continuation: (load, penalty, Newton iterations, converged) of every stage
+
+    def converged_step(t):
+        for s in getattr(solver, "history", []) if method == "continuation" else []:
+            stages.append((t, s.penalty, s.newton_iterations, s.converged))
+
     tic = time.perf_counter()
     load_steps = fm.solve_load_steps(
-        solver, lambda t: setattr(scale, "value", t), num_steps=steps, progress=False
-    )
+        solver, lambda t: setattr(scale, "value", t), num_steps=steps, progress=False,
+        writer=converged_step,
+    )  # fmt: skip
     seconds = comm.allreduce(time.perf_counter() - tic, op=MPI.MAX)
 
     # nodal contact forces and the block's top-face tributary areas
@@ -195,13 +210,19 @@ def run(
     if method == "augmented":
         out["updates"] = solver.total_updates
         out["overlap_tol"] = overlap / solver.tolerance
+    if method == "continuation":
+        out["stages"] = stages
+        out["stage_solves"] = solver.total_stages
+        out["retries"] = solver.total_retries
     return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--res", type=float, nargs="+", default=[1.0, 0.5])
-    parser.add_argument("--method", choices=["penalty", "augmented", "both"], default="both")
+    parser.add_argument(
+        "--method", choices=["penalty", "augmented", "continuation", "both"], default="both"
+    )
     parser.add_argument("--factor", type=float, default=10.0, help="propose_penalty factor")
     parser.add_argument(
         "--tol", type=float, default=0.02, help="augmented: overlap tolerance / delta"
@@ -209,6 +230,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--relaxation", type=float, default=0.5, help="augmented: Uzawa omega")
     parser.add_argument("--max-updates", type=int, default=20, help="augmented: per step")
+    parser.add_argument(
+        "--start-factor", type=float, default=10.0, help="continuation: first stage's factor"
+    )
+    parser.add_argument("--growth", type=float, default=10.0, help="continuation: per stage")
+    parser.add_argument(
+        "--no-damping", action="store_true", help="without RigidModeDamping (the first step fails)"
+    )
     args = parser.parse_args()
     methods = ["penalty", "augmented"] if args.method == "both" else [args.method]
     rows = []
@@ -217,7 +245,7 @@ def main() -> None:
             try:
                 row = run(
                     res, method, args.factor, args.tol, args.steps, args.relaxation,
-                    args.max_updates,
+                    args.max_updates, args.start_factor, args.growth, not args.no_damping,
                 )  # fmt: skip
             except RuntimeError as err:
                 if MPI.COMM_WORLD.rank == 0:
@@ -234,9 +262,20 @@ def main() -> None:
                     f"(block {row['force_block']:.4f})  overlap/delta "
                     f"{row['overlap_delta']:.3f}  p_max {row['p_max']:.3f} vs p0 {row['p0']:.3f}"
                     f" ({row['p_error']:+.1%}, peer {PEER_PMAX_ERROR.get(res, np.nan):+.1%})  "
-                    f"a {row['a_moment']:.3f} vs {row['a']:.3f} ({row['a_error']:+.1%})",
+                    f"a {row['a_moment']:.3f} vs {row['a']:.3f} ({row['a_error']:+.1%})"
+                    + (
+                        f"  stage solves {row['stage_solves']} (retries {row['retries']})"
+                        if "stages" in row
+                        else ""
+                    ),
                     flush=True,
                 )
+                for load, penalty, its, ok in row.get("stages", []):
+                    print(
+                        f"    load {load:.4g}  penalty {penalty:.4g}  newton {its:3d}"
+                        f"{'' if ok else '  failed'}",
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

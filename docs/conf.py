@@ -59,7 +59,7 @@ nitpick_ignore_regex = [
         r"(numpy|np|ufl|dolfinx|basix|petsc4py|PETSc|mpi4py|MPI|numba|typing|pyvista)(\..*)?",
     ),
     ("py:.*", r"(Expr|Scalar|optional|callable|array_like|collections\.abc\..*)"),
-    ("py:class", r"fenics_matdepth\.(solvers|dynamics|augmented)\._.*"),
+    ("py:class", r"fenics_matdepth\.(solvers|dynamics|augmented|continuation)\._.*"),
     ("py:class", r"_Problem"),
     ("py:class", r"os\.PathLike"),
 ]

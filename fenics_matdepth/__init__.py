@@ -20,6 +20,7 @@ from fenics_matdepth.augmented import (
 )
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
+from fenics_matdepth.continuation import ContinuationStage, PenaltyContinuation
 from fenics_matdepth.depth import depth_deficiency, material_depth
 from fenics_matdepth.dynamics import BackwardEuler, Newmark, TimeStep, solve_time_steps
 from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
@@ -40,9 +41,11 @@ __all__ = [
     "ContactAssembler",
     "ContactOperator",
     "ContactProblem",
+    "ContinuationStage",
     "LoadStep",
     "Newmark",
     "NonlinearContactProblem",
+    "PenaltyContinuation",
     "RigidModeDamping",
     "RigidRotation",
     "SolveResult",

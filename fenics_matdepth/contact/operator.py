@@ -99,11 +99,9 @@ class ContactOperator:
             raise ValueError("depth must be a P1 scalar Function on the mesh of u")
         if integration not in _INTEGRATIONS:
             raise ValueError(f"integration must be one of {_INTEGRATIONS}, got {integration!r}")
-        penalty = float(penalty)
-        if not np.isfinite(penalty) or penalty <= 0.0:
-            raise ValueError(f"penalty must be a positive number (pressure/length), got {penalty}")
-        self.u = u
+        self._cache: dict[str, typing.Any] = {}
         self.penalty = penalty
+        self.u = u
         self.integration = integration
         self.comm: MPI.Comm = mesh.comm
         # stacklevel of the deficiency warning: the surface's set-up, its __init__, this
@@ -124,11 +122,24 @@ class ContactOperator:
         self._pair_k = np.empty(0, dtype=INDEX)
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
-        self._cache: dict[str, typing.Any] = {}
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(self, allow_reference_overlap)
         self.update()
+
+    @property
+    def penalty(self) -> float:
+        """The penalty parameter eps (pressure / length); assignable between solves (the next
+        evaluation uses the new value, e.g. for penalty continuation)."""
+        return self._penalty
+
+    @penalty.setter
+    def penalty(self, value: float) -> None:
+        value = float(value)
+        if not np.isfinite(value) or value <= 0.0:
+            raise ValueError(f"penalty must be a positive number (pressure/length), got {value}")
+        self._penalty = value
+        self._cache.clear()  # energies, gradients and Hessians scale with eps
 
     # -- geometry -------------------------------------------------------------------------
 
