@@ -435,6 +435,7 @@ class ContactProblem:
         num_dofs = u.function_space.dofmap.index_map.size_global * 3
         if num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user):
             options.update(_AMG_OPTIONS)
+            del options["pc_factor_mat_solver_type"]
         opts = PETSc.Options()
         opts.prefixPush(self.prefix)
         for key, value in {**options, **user}.items():
