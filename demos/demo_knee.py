@@ -148,8 +148,8 @@ spec.loader.exec_module(leg)
 # - *tissue glued round the patella's lower rim and under its lower pole*: carried down onto
 #   the trochlea (penetration 0.28 h at 52°) and pressed onto the femur by the ligament. The
 #   patella's lower half now sits in a 2 mm recess swept back into the femur's clearance
-#   (`patella_recess`), and the tissue between the patellar ligament and the femur, where a
-#   real knee has the infrapatellar fat pad, is left out (`fat_pad_half_width`);
+#   (`patella_recess`). Leaving out the tissue between the ligament and the femur as well
+#   (the infrapatellar fat pad's place, `fat_pad_half_width`) made it worse (`docs/demos.md`);
 # - *slivers*: the lowest det F sat in single flat tetrahedra (a tetrahedron whose vertices are
 #   nearly coplanar changes its volume by a large fraction for a small motion). The mesh is
 #   optimised harder (`Mesh.OptimizeThreshold` 0.45, three passes, then vertex relocation):

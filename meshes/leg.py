@@ -31,9 +31,9 @@ conforming mesh (gmsh ``fragment``). Sliding interfaces are *not* shared: a gap 
 separates the distal femur from everything around it (the patella, the quadriceps, the thigh
 soft tissue), and the tibial plateau from the condyles (the joint space, a cavity bounded by
 the condyles, the plateau and the soft tissue around them, reaching past the plateau's
-posterior rim). A recess of ``patella_recess`` round the patella's lower half (swept back into
-the femur's clearance) and a box between the patellar ligament and the femur (the fat pad's
-place) are empty too: soft tissue glued to a bone and pressed onto the femur there was crushed.
+posterior rim), and a recess of ``patella_recess`` round the patella's lower half (swept back
+into the femur's clearance): soft tissue glued to bone and pressed onto the femur there was
+crushed.
 Behind the knee the popliteal fossa is a hollow (a cylinder along ``x`` cut out of the back of
 the leg, lined with skin), and at its floor a crease (the popliteal crease: a slot of width
 ``2 * crease_half_width``, lined with skin) cuts into the back of the leg: where the skin folds
@@ -162,12 +162,12 @@ class LegGeometry:
             reaches (the patella's outline swept back into the femur's clearance).
         fat_pad_half_width: half width (``x``) of a box emptied between the patellar
             ligament and the femur, from the tibial plateau up to 12 mm below the patella's
-            centre (0: none; the ligament itself stays). The soft tissue there, glued to the
-            ligament and to the front of the plateau and confined by the femur, was pressed
-            onto the femur as the ligament wrapped round it (det F 0.62 at 24 degrees under
-            the patella's lower pole with the recess alone). A real knee has the
-            infrapatellar fat pad there, soft fat in a synovial fold that is squeezed out of
-            the way.
+            centre (default 0: none; the ligament itself stays), where a real knee has the
+            infrapatellar fat pad. Tried at 10 mm against the tissue crushed under the
+            patella's lower pole (det F 0.62 at 24 degrees with the recess alone): that
+            tissue then held, but with the ligament wrapping the femur directly the patella
+            was pressed onto the femur and the film of tissue between the patella's upper
+            back and the femur was crushed instead (det F 0.76 at 19.5, 0.28 at 25.5 degrees).
         fat_pad_y: ``(back, front)``, the ``y`` range of that box (its back inside the femur's
             clearance, its front at the ligament, which takes precedence).
         tendon_semi_axes: ``(x, y)`` semi-axes of the quadriceps tendon's section.
@@ -215,7 +215,7 @@ class LegGeometry:
     patellofemoral_space: float = 1.5
     patella_recess: float = 2.0
     patella_recess_depth: float = 8.0
-    fat_pad_half_width: float = 10.0
+    fat_pad_half_width: float = 0.0
     fat_pad_y: tuple[float, float] = (10.0, 30.0)
     tendon_semi_axes: tuple[float, float] = (12.0, 5.0)
     tendon_length: float = 32.0
