@@ -140,6 +140,16 @@ spec.loader.exec_module(leg)
 # - *the plateau's rim*: the tibial plateau sits 1.5 mm further forward (`plateau_offset`),
 #   which keeps its posterior rim, swinging up behind the condyles about the fixed axis, a
 #   little further from the femoral shaft at full flexion;
+# - *tissue on the plateau's posterior rim* (the lowest det F of the leg, 0.28 at 54°, under
+#   the lateral condyle): not a misplaced axis (the condyles' surface is 22.00 mm from their
+#   centres on the axis, so the rim keeps its 5.3 mm from the femur as it turns), but 3.3 mm of
+#   tissue glued to the rim and pressed onto the femur by the tissue behind it. The joint space
+#   now reaches 4 mm past the posterior rim (`joint_space_semi_axes`, `joint_space_offset`);
+# - *tissue glued round the patella's lower rim and under its lower pole*: carried down onto
+#   the trochlea (penetration 0.28 h at 52°) and pressed onto the femur by the ligament. The
+#   patella's lower half now sits in a 2 mm recess swept back into the femur's clearance
+#   (`patella_recess`). Leaving out the tissue between the ligament and the femur as well
+#   (the infrapatellar fat pad's place, `fat_pad_half_width`) made it worse (`docs/demos.md`);
 # - *slivers*: the lowest det F sat in single flat tetrahedra (a tetrahedron whose vertices are
 #   nearly coplanar changes its volume by a large fraction for a small motion). The mesh is
 #   optimised harder (`Mesh.OptimizeThreshold` 0.45, three passes, then vertex relocation):
@@ -336,7 +346,9 @@ problem = fm.ContactProblem(
 #
 # - penetration relative to the element size: the largest depth reached by a surface
 #   (`contact.max_penetration()`) over the median edge of the boundary triangles;
-# - the smallest $\det \mathbf{F}$ over the cells (an inverted element has $\det\mathbf{F} \le 0$);
+# - the smallest $\det \mathbf{F}$ over the cells (an inverted element has $\det\mathbf{F} \le 0$),
+#   and the five lowest cells with their body and reference centroid (one crushed cell or a
+#   crushed region);
 # - the patella's motion relative to the (fixed) femur: the displacement of its centroid and the
 #   rotation of the best-fitting rigid motion of its vertices (Kabsch);
 # - the contact force on the patella: minus the contact gradient summed over its vertices (the
@@ -407,6 +419,13 @@ def measure(t: float) -> dict:
         else (np.inf, 0, [0.0, 0.0, 0.0])
     )
     min_det, worst_body, worst_at = min(comm.allgather(where))
+    # the five lowest cells of the leg, to tell one crushed cell from a crushed region
+    lowest = np.argsort(local)[:5]
+    candidates = [
+        (float(local[c]), leg.BODIES[int(cell_body[c])], np.round(domain_centroids[c], 1).tolist())
+        for c in lowest
+    ]
+    lowest_cells = sorted(c for part in comm.allgather(candidates) for c in part)[:5]
     dofs, values = contact.gradient_array()
     force = np.zeros(3)
     on_patella = is_patella[dofs // 3]
@@ -424,6 +443,7 @@ def measure(t: float) -> dict:
         "min_det_F": min_det,
         "min_det_F_body": leg.BODIES.get(worst_body, "?"),
         "min_det_F_at": worst_at,
+        "lowest_det_F_cells": lowest_cells,
         "patella_displacement": shift.tolist(),
         "patella_centroid": centroid.tolist(),
         "patella_rotation_degrees": rotation,

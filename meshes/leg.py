@@ -30,11 +30,14 @@ muscle-skin, thigh tissue on the femur shaft, calf on the tibia) are shared surf
 conforming mesh (gmsh ``fragment``). Sliding interfaces are *not* shared: a gap of ``gap``
 separates the distal femur from everything around it (the patella, the quadriceps, the thigh
 soft tissue), and the tibial plateau from the condyles (the joint space, a cavity bounded by
-the condyles, the plateau and the soft tissue around them). Behind the knee the popliteal
-fossa is a hollow (a cylinder along ``x`` cut out of the back of the leg, lined with skin), and
-at its floor a crease (the popliteal crease: a slot of width ``2 * crease_half_width``, lined
-with skin) cuts into the
-back of the leg: where the skin folds onto itself when the knee bends.
+the condyles, the plateau and the soft tissue around them, reaching past the plateau's
+posterior rim), and a recess of ``patella_recess`` round the patella's lower half (swept back
+into the femur's clearance): soft tissue glued to bone and pressed onto the femur there was
+crushed.
+Behind the knee the popliteal fossa is a hollow (a cylinder along ``x`` cut out of the back of
+the leg, lined with skin), and at its floor a crease (the popliteal crease: a slot of width
+``2 * crease_half_width``, lined with skin) cuts into the back of the leg: where the skin folds
+onto itself when the knee bends.
 
 Facet tags: :data:`PROXIMAL_CUT` (the thigh's cut plane ``z = thigh_length``) and
 :data:`DISTAL_CUT` (the shank's cut plane ``z = -shank_length``).
@@ -135,7 +138,11 @@ class LegGeometry:
         joint_space_semi_axes: ``(x, y)`` semi-axes of the joint-space cavity, an elliptic
             cylinder from the plateau up into the condyles' clearance (inside the plateau's
             rim, which the soft tissue holds).
-        joint_space_offset: ``y`` of its centre.
+        joint_space_offset: ``y`` of its centre. Its posterior edge lies 4 mm behind the
+            plateau's (under the condyles): soft tissue left on the plateau's posterior rim was
+            the leg's lowest det F (0.28 at 54 degrees), pressed between the rim, swinging up
+            behind the condyles, and the femur; a real plateau's rim carries the meniscus and
+            the capsule, which slide on the femur, not tissue glued to bone on both sides.
         joint_space_top: ``z`` of its top (inside the clearance spheres).
         tibia_shaft_radius: radius of the tibial shaft.
         tibia_shaft_offset: anterior offset ``y`` of the tibial shaft's axis.
@@ -146,6 +153,23 @@ class LegGeometry:
             With a layer of soft tissue left between them (as when the patella sat ``2 gap``
             off the femur), that layer carried the patellofemoral pressure and was crushed
             as the patella slid down (det F 0.58 at 21 degrees).
+        patella_recess: width of a sliding gap round the patella's posterior half (0: the
+            tissue is glued all round its rim). Tissue glued to the back of the patella's rim
+            was carried down onto the trochlea as the patella slid and tilted, and pressed
+            into it (penetration 0.28 h, about 2 MPa, at 52 degrees); in a real knee the
+            synovial recesses and the fat pad slide there. The tendon and ligament stay glued.
+        patella_recess_depth: how much further back (``-y``) than the patella the recess
+            reaches (the patella's outline swept back into the femur's clearance).
+        fat_pad_half_width: half width (``x``) of a box emptied between the patellar
+            ligament and the femur, from the tibial plateau up to 12 mm below the patella's
+            centre (default 0: none; the ligament itself stays), where a real knee has the
+            infrapatellar fat pad. Tried at 10 mm against the tissue crushed under the
+            patella's lower pole (det F 0.62 at 24 degrees with the recess alone): that
+            tissue then held, but with the ligament wrapping the femur directly the patella
+            was pressed onto the femur and the film of tissue between the patella's upper
+            back and the femur was crushed instead (det F 0.76 at 19.5, 0.28 at 25.5 degrees).
+        fat_pad_y: ``(back, front)``, the ``y`` range of that box (its back inside the femur's
+            clearance, its front at the ligament, which takes precedence).
         tendon_semi_axes: ``(x, y)`` semi-axes of the quadriceps tendon's section.
         tendon_length: length of the quadriceps tendon above the patella.
         ligament_semi_axes: ``(x, y)`` semi-axes of the patellar ligament's section.
@@ -180,8 +204,8 @@ class LegGeometry:
     plateau_semi_axes: tuple[float, float] = (36.0, 17.0)
     plateau_offset: float = 4.5
     plateau_thickness: float = 20.0
-    joint_space_semi_axes: tuple[float, float] = (32.0, 13.0)
-    joint_space_offset: float = 3.5
+    joint_space_semi_axes: tuple[float, float] = (34.0, 16.5)
+    joint_space_offset: float = 0.0
     joint_space_top: float = -8.0
     tibia_shaft_radius: float = 12.0
     tibia_shaft_offset: float = 6.0
@@ -189,6 +213,10 @@ class LegGeometry:
     patella_semi_axes: tuple[float, float, float] = (19.0, 8.0, 21.0)
     patella_height: float = 24.0
     patellofemoral_space: float = 1.5
+    patella_recess: float = 2.0
+    patella_recess_depth: float = 8.0
+    fat_pad_half_width: float = 0.0
+    fat_pad_y: tuple[float, float] = (10.0, 30.0)
     tendon_semi_axes: tuple[float, float] = (12.0, 5.0)
     tendon_length: float = 32.0
     ligament_semi_axes: tuple[float, float] = (8.0, 3.5)
@@ -373,6 +401,26 @@ def build_leg_model(
     px, py, pz = g.patella_centre
     patella = [(3, occ.addSphere(px, py, pz, 1.0))]
     occ.dilate(patella, px, py, pz, *g.patella_semi_axes)
+    patella_recess = []
+    if g.patella_recess > 0.0:
+        # the patella's lower half dilated and swept back into the femur's clearance
+        # (the femur takes precedence): a rounder recess left thin wedges of tissue, all four
+        # vertices on the boundary, between its rim and the femur. Built round a unit sphere
+        # and then dilated: OCC's booleans failed on the dilated (B-spline) shapes.
+        a, b, c = (s + g.patella_recess for s in g.patella_semi_axes)
+        sweep = (b + g.patella_recess_depth) / b
+        unit = fuse([(3, occ.addSphere(px, py, pz, 1.0)),
+                     (3, occ.addCylinder(px, py - sweep, pz, 0.0, sweep, 0.0, 1.0))])  # fmt: skip
+        # cut a little below the patella's equator (through it, the mesher met intersecting
+        # facets)
+        above = (3, occ.addBox(px - 2, py - 2 - sweep, pz - 2.0 / c, 4, 4 + sweep, 2))
+        patella_recess = cut(unit, [above])
+        occ.dilate(patella_recess, px, py, pz, a, b, c)
+    if g.fat_pad_half_width > 0.0:
+        y0, y1 = g.fat_pad_y
+        z0, z1 = g.plateau_top, pz - 12.0
+        w = g.fat_pad_half_width
+        patella_recess.append((3, occ.addBox(-w, y0, z0, 2 * w, y1 - y0, z1 - z0)))
 
     # -- tendon and ligament, glued to the bones they join
     tendon_bottom = pz + 0.5 * g.patella_semi_axes[2]
@@ -456,6 +504,7 @@ def build_leg_model(
         "cavity": cavity,
         "tendon": tendon,
         "ligament": ligament,
+        "patella_recess": patella_recess,  # and the fat pad's box
         "outer": outer,
         "inner": inner,
         "quad_box": [quad_box],
@@ -482,6 +531,8 @@ def build_leg_model(
         for name, tag in (("tendon", TENDON), ("ligament", LIGAMENT)):
             if name in names:
                 return tag
+        if "patella_recess" in names:
+            return None
         if "inner" not in names:
             return SKIN
         if "quad_box" in names:

@@ -149,6 +149,10 @@ def _knee_claims(output: Path) -> None:
     for step in steps:
         assert step["penetration_over_h"] < 0.1, step
         assert step["min_det_F"] > 0.0, step
+        # the five lowest cells, gathered over the ranks, start with the leg's minimum
+        lowest = [cell[0] for cell in step["lowest_det_F_cells"]]
+        assert len(lowest) == 5 and lowest == sorted(lowest), step
+        assert lowest[0] == pytest.approx(step["min_det_F"], rel=1e-12), step
     # distal (-z) motion of the patella grows with flexion
     dz = [step["patella_displacement"][2] for step in steps]
     assert dz[-1] < 0.0, dz
