@@ -58,32 +58,34 @@ def _press(comm, factor: float, mesh=None, **snes_tolerances):
 
 
 def test_continuation_converges_where_the_large_penalty_fails():
-    """The soft block pressed by one element height in one solve at a penalty of 1000 E/h,
-    at most 20 Newton iterations per solve: the plain solve fails (after 50 iterations its
-    residual was still 1.6e-3 to 1.7e-2 of its start, measured serially and on 2 ranks);
-    continued from 10 E/h (where this press takes 4 iterations), three stages converge within
-    the same 20 iterations in all."""
+    """The soft block pressed by one element height in one solve at a penalty of 1e4 E/h, at
+    most 20 Newton iterations per solve, to 1e-7 of the initial residual (the residual's
+    rounding floor at this penalty is near 2e-8): the plain solve fails (after 20 iterations
+    its residual was still 0.15 of its start, after 50 iterations 0.03); continued from
+    10 E/h, four stages converge within the same 20 iterations in all (measured 16). (At
+    1000 E/h the plain solve fails no more since the clipper takes coincident face lines as
+    one: 7 iterations.)"""
     comm = MPI.COMM_WORLD
-    plain, set_load, _ = _press(comm, 1000.0, rtol=1e-8, max_it=20)
+    plain, set_load, _ = _press(comm, 1e4, rtol=1e-7, max_it=20)
     set_load(1.0)
     failed = plain.solve(raise_on_failure=False)
     assert not failed.converged
-    assert failed.residual_norms[-1] > 1e-6 * failed.residual_norms[0]
+    assert failed.residual_norms[-1] > 1e-3 * failed.residual_norms[0]
 
-    problem, set_load, start = _press(
-        comm, 1000.0, plain.u.function_space.mesh, rtol=1e-8, max_it=20
-    )
+    problem, set_load, start = _press(comm, 1e4, plain.u.function_space.mesh, rtol=1e-7, max_it=20)
     target = problem.contact.penalty
     tolerances = problem.snes.getTolerances()
     solver = fm.PenaltyContinuation(problem, start=start, growth=10.0)
     set_load(1.0)
     result = solver.solve()
     history = solver.history
-    assert [s.penalty for s in history] == pytest.approx([start, 10 * start, target], rel=1e-12)
+    assert [s.penalty for s in history] == pytest.approx(
+        [start, 10 * start, 100 * start, target], rel=1e-12
+    )
     assert all(s.converged for s in history)
     assert sum(s.newton_iterations for s in history) == result.iterations <= 20
-    # the last stage met the plain solve's tolerance: 1e-8 of the first stage's start
-    assert result.residual_norms[-1] <= 1e-8 * result.residual_norms[0]
+    # the last stage met the plain solve's tolerance: 1e-7 of the first stage's start
+    assert result.residual_norms[-1] <= 1e-7 * result.residual_norms[0]
     assert problem.contact.penalty == target
     assert problem.snes.getTolerances() == tolerances  # the stage tolerances are undone
     assert history[-1].overlap == pytest.approx(problem.contact.max_penetration(), rel=1e-12)
@@ -91,7 +93,7 @@ def test_continuation_converges_where_the_large_penalty_fails():
     assert history[-1].overlap < 0.2 * history[0].overlap
     if comm.rank == 0:
         print(
-            f"\nplain at 1000 E/h: {failed.iterations} it, residual "
+            f"\nplain at 1e4 E/h: {failed.iterations} it, residual "
             f"{failed.residual_norms[-1] / failed.residual_norms[0]:.1e} of its start; "
             f"continuation: {solver.diagnostics()}"
         )
