@@ -163,6 +163,21 @@ def _coincident(lam, a, b):
 
 
 @njit(inline="always")
+def _earlier_coincident(lam, j):
+    """How face line j relates to the lines 0..j-1 (COINCIDENT_RTOL): -1 if one of them is the
+    same line with the opposite orientation (nothing is left), 1 if one is the same line with
+    the same orientation (clipping by j adds nothing), else 0."""
+    relation = 0
+    for j0 in range(j):
+        r = _coincident(lam, j0, j)
+        if r < 0:
+            return -1
+        if r > 0:
+            relation = 1
+    return relation
+
+
+@njit(inline="always")
 def _clip(lam, mu, vlab, elab):
     """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
 
@@ -197,15 +212,10 @@ def _clip(lam, mu, vlab, elab):
     n = 3
     cur = 0
     for j in range(4):
-        # a face line that coincides with an earlier one (see COINCIDENT_RTOL)
-        redundant = False
-        for j0 in range(j):
-            relation = _coincident(lam, j0, j)
-            if relation < 0:
-                return 0
-            if relation > 0:
-                redundant = True
-        if redundant:
+        relation = _earlier_coincident(lam, j)
+        if relation < 0:
+            return 0
+        if relation > 0:
             continue
         nxt = 1 - cur
         # all vertices inside: nothing to clip
@@ -283,15 +293,10 @@ def _clip_nonempty(lam, buf):
     n = 3
     cur = 0
     for j in range(4):
-        # a face line that coincides with an earlier one (see COINCIDENT_RTOL)
-        redundant = False
-        for j0 in range(j):
-            relation = _coincident(lam, j0, j)
-            if relation < 0:
-                return 0
-            if relation > 0:
-                redundant = True
-        if redundant:
+        relation = _earlier_coincident(lam, j)
+        if relation < 0:
+            return False
+        if relation > 0:
             continue
         nxt = 1 - cur
         m = 0
