@@ -173,9 +173,6 @@ def test_patch_augmented_lagrangian():
     assert diag["updates"] >= 1
 
 
-# serial only: on 2 ranks the last, undamped solve stalled at 1e-5 of the first residual in 2 of
-# 5 runs (round-off of the off-process sums; docs/solvers.md, known limitation)
-@pytest.mark.serial
 def test_rigid_mode_damping_floating_cube():
     """The patch test's upper cube held only by contact, started touching (no initial sink):
     the damped proximal solves plus the final undamped solve reach the plain solution."""
