@@ -386,7 +386,7 @@ class ContactProblem:
             MUMPS, rtol 1e-10, atol 1e-12, at most 50 iterations). From AMG_MIN_DOFS global
             dofs on, unless ``ksp_type`` or ``pc_type`` is given, the linear solver is GMRES
             with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
-            (:func:`rigid_body_modes`) are set as the matrix's near-nullspace.
+            (:func:`~fenics_matdepth.rigid_body_modes`) are set as the matrix's near-nullspace.
 
     Attributes:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
