@@ -72,7 +72,10 @@ def _concave_corner_claims(output: Path) -> None:
     r = np.asarray(area["residual_norms"])
     assert area["converged"], r
     assert r[-1] <= 1e-10 * r[0], r
-    assert area["iterations"] <= 30, r
+    # a modest count: the reduced demo took 34 iterations on 2 ranks after the clipper took
+    # coincident face lines as one (the damped phase before the quadratic end grew; serially it
+    # stayed within 30), 26 to 30 before
+    assert area["iterations"] <= 40, r
     assert area["step_lengths"][-1] == pytest.approx(1.0, abs=1e-6)  # Newton's own steps
 
     r = np.asarray(collocation["residual_norms"])
