@@ -419,35 +419,6 @@ def test_degenerate_inputs_finite_and_continuous(name):
             assert abs(e1 - energy) < 1e3 * scale + 1e-12
 
 
-def _rotation(seed):
-    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
-    return q * np.sign(np.diag(r))
-
-
-@pytest.mark.parametrize("seed", range(20))
-def test_triangle_plane_through_a_tetrahedron_edge(seed):
-    """The triangle's plane holds the edge (0,0,0)-(0,1,0) where two faces of the tetrahedron
-    meet, so those faces are one line in the triangle's parameter plane (up to rounding, after
-    a random rotation). Tetrahedron on one side of the plane: they touch along the edge only,
-    an empty intersection, so the pair gives nothing (clipping by both faces cut a rounding
-    sliver whose derivatives were of order 1 / rounding). Plane through the tetrahedron's
-    inside: the two faces are one half-plane, clipped once."""
-    R = _rotation(seed)
-    x_tri = np.array([[0.0, -1.0, -1.0], [0.0, 2.0, -1.0], [0.0, 0.5, 2.0]]) @ R.T
-    depth = np.array([0.0, 0.0, 0.7, 0.9])
-    edge = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    touching = np.vstack((edge, [[1.0, 0.5, 0.7], [0.8, 0.4, -0.9]])) @ R.T
-    energy, grad, hess = pair_energy(x_tri, touching, depth, EPS)
-    assert energy == 0.0 and not grad.any() and not hess.any()
-    through = np.vstack((edge, [[1.0, 0.5, 0.7], [-0.8, 0.4, 0.9]])) @ R.T
-    energy, grad, hess = pair_energy(x_tri, through, depth, EPS)
-    assert energy > 0.0
-    # the incidence is a kink (a perturbation makes either face the boundary), so no finite
-    # differences here: the Hessian must just be of the problem's scale (eps A / h^2 ~ eps),
-    # not of 1 / rounding
-    assert np.all(np.isfinite(hess)) and np.abs(hess).max() <= 1e3 * EPS
-
-
 # ---------------------------------------------------------------- batch drivers
 def test_batch_drivers_match_single_pairs():
     rng = np.random.default_rng(10)
