@@ -75,6 +75,14 @@ _AMG_OPTIONS = {
 MERIT_SWITCH_RTOL = 1e-5
 STALL_RTOL = 1e-3
 
+#: SNES's reason for a non-finite residual norm (renamed DIVERGED_FUNCTION_NANORINF in newer
+#: PETSc; value -4 in both)
+NAN_REASON = getattr(
+    PETSc.SNES.ConvergedReason,
+    "DIVERGED_FNORM_NAN",
+    getattr(PETSc.SNES.ConvergedReason, "DIVERGED_FUNCTION_NANORINF", -4),
+)
+
 #: ContactProblem stops with DIVERGED_LINE_SEARCH after this many consecutive iterations
 #: that changed the residual norm by less than NO_PROGRESS_RTOL (relative): the line search
 #: is taking steps of no length (measured: a patch-test solve sat at the same residual for 45
@@ -513,7 +521,7 @@ class ContactProblem:
         xnorm, step_norm, fnorm = norms
         rtol, atol, stol, max_it = snes.getTolerances()
         if not np.isfinite(fnorm):
-            return reasons.DIVERGED_FNORM_NAN
+            return NAN_REASON
         if iteration == 0:
             self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
             return reasons.CONVERGED_FNORM_ABS if fnorm < atol else reasons.ITERATING
