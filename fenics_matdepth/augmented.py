@@ -58,7 +58,42 @@ class _Problem(typing.Protocol):
     def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
 
 
+def _newton_tolerances(problem) -> tuple[typing.Any, typing.Any]:
+    """The problem's SNES (``snes``) or DOLFINx NewtonSolver (``_solver``), either may be None."""
+    return getattr(problem, "snes", None), getattr(problem, "_solver", None)
+
+
+def _own_rtol(problem) -> float | None:
+    """The problem's relative Newton tolerance (None if it exposes no solver)."""
+    snes, newton = _newton_tolerances(problem)
+    if snes is not None:
+        return float(snes.getTolerances()[0])
+    return None if newton is None else float(newton.rtol)
+
+
 @contextlib.contextmanager
+def _looser_tolerances(problem, rtol: float | None, atol: float | None):
+    """While solving a stage, stop Newton at ``rtol`` (relative to the stage's initial residual)
+    or ``atol`` (absolute) where these are looser than the problem's own (None: unchanged)."""
+    snes, newton = _newton_tolerances(problem)
+    if snes is not None:
+        rtol0, atol0, stol, max_it = snes.getTolerances()
+        snes.setTolerances(rtol=max(rtol0, rtol or 0.0), atol=max(atol0, atol or 0.0))
+        try:
+            yield
+        finally:
+            snes.setTolerances(rtol=rtol0, atol=atol0, stol=stol, max_it=max_it)
+    elif newton is not None:
+        rtol0, atol0 = newton.rtol, newton.atol
+        newton.rtol, newton.atol = max(rtol0, rtol or 0.0), max(atol0, atol or 0.0)
+        try:
+            yield
+        finally:
+            newton.rtol, newton.atol = rtol0, atol0
+    else:
+        yield
+
+
 def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
     """While solving again after a first solve (after a pressure update, or a damped solve),
     add an absolute Newton tolerance: ``inner_rtol`` times the first solve's initial residual.
@@ -68,25 +103,8 @@ def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
     patch test with snes_rtol 1e-8: the solves after updates stalled between 1.2e-11 and
     3.9e-11 for relative targets of 4e-12 and below, while the first solve had started at
     2.2e-3)."""
-    snes = getattr(problem, "snes", None)
-    newton = getattr(problem, "_solver", None)
-    if first_norm is None or (snes is None and newton is None):
-        yield
-        return
-    if snes is not None:
-        rtol, atol, stol, max_it = snes.getTolerances()
-        snes.setTolerances(atol=max(atol, inner_rtol * first_norm))
-        try:
-            yield
-        finally:
-            snes.setTolerances(rtol=rtol, atol=atol, stol=stol, max_it=max_it)
-    else:
-        atol = newton.atol
-        newton.atol = max(atol, inner_rtol * first_norm)
-        try:
-            yield
-        finally:
-            newton.atol = atol
+    atol = None if first_norm is None else inner_rtol * first_norm
+    return _looser_tolerances(problem, None, atol)
 
 
 @dataclasses.dataclass

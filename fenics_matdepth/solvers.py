@@ -440,7 +440,8 @@ class ContactProblem:
         self.snes.setOptionsPrefix(self.prefix)
         options = dict(_DEFAULT_OPTIONS)
         user = petsc_options or {}
-        num_dofs = u.function_space.dofmap.index_map.size_global * 3
+        dofmap = u.function_space.dofmap
+        num_dofs = dofmap.index_map.size_global * dofmap.index_map_bs
         if num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user):
             options.update(_AMG_OPTIONS)
             del options["pc_factor_mat_solver_type"]
