@@ -11,7 +11,15 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from fenics_matdepth import checkpoint, contact, geometry, kinematics, materials
+# _cache first: numba's cache stamps of the kernels then cover all the package's sources
+from fenics_matdepth import (
+    _cache,  # noqa: F401
+    checkpoint,
+    contact,
+    geometry,
+    kinematics,
+    materials,
+)
 from fenics_matdepth.augmented import (
     AugmentedLagrangian,
     RigidModeDamping,
