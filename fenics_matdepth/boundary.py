@@ -87,15 +87,22 @@ def p1_dof_coordinates(V: dolfinx.fem.FunctionSpace) -> np.ndarray:
     return np.ascontiguousarray(mesh.geometry.x[node_of_dof], dtype=FLOAT)
 
 
-def owned_boundary_triangle_dofs(mesh: dolfinx.mesh.Mesh, cells: np.ndarray) -> np.ndarray:
+def owned_boundary_triangle_dofs(
+    mesh: dolfinx.mesh.Mesh, cells: np.ndarray, X: np.ndarray
+) -> np.ndarray:
     """The exterior triangles this rank owns, as local P1 dofs (blocks) of their cell.
 
     The three vertices of each owned exterior facet's (single) cell other than the opposite
-    one (the reference tetrahedron's facet i is opposite vertex i), in the cell's order.
+    one (the reference tetrahedron's facet i is opposite vertex i), ordered so that the
+    normal ``(x1 - x0) x (x2 - x0)`` points out of the cell in the reference configuration
+    ``X``: the clipper shifts each triangle a rounding-scale distance along that normal
+    (`fenics_matdepth.geometry.clip.CLIP_SHIFT`), so a triangle lying in a face of another
+    body counts as touching it.
 
     Args:
         mesh: the tetrahedral mesh.
         cells: (num local cells, 4) local P1 dofs (blocks) of every local cell.
+        X: (num local dofs, 3) reference coordinates of the P1 dofs.
 
     Returns:
         (num owned exterior facets, 3) local dofs.
@@ -107,4 +114,11 @@ def owned_boundary_triangle_dofs(mesh: dolfinx.mesh.Mesh, cells: np.ndarray) -> 
     cell = np.asarray(f2c.array)[np.asarray(f2c.offsets)[facets]]
     opposite = np.argmax(c2f[cell] == facets[:, None], axis=1)
     others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    return np.asarray(cells, dtype=INDEX)[cell[:, None], others[opposite]].reshape(-1, 3)
+    cells = np.asarray(cells, dtype=INDEX)
+    tri = cells[cell[:, None], others[opposite]].reshape(-1, 3)
+    apex = cells[cell, opposite]
+    x = X[tri]
+    normal = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    inward = np.einsum("ij,ij->i", normal, X[apex] - x[:, 0]) > 0.0
+    tri[inward] = tri[inward][:, [0, 2, 1]]
+    return np.ascontiguousarray(tri)

@@ -139,9 +139,6 @@ def test_pressure_moments():
 # ------------------------------------------------------------------------------------------
 
 
-# serial only: on 2 ranks the first solve stalled at 2e-6 of its start in one CI run (the same
-# rounding slivers; docs/kernels.md, coincident face lines)
-@pytest.mark.serial
 def test_patch_augmented_lagrangian():
     """A soft penalty (eps h / E ~ 1.4) leaves an overlap of p / (2 eps) and a pressure a few %
     off uniform; the augmented Lagrangian brings the overlap below the tolerance everywhere
@@ -176,10 +173,6 @@ def test_patch_augmented_lagrangian():
     assert diag["updates"] >= 1
 
 
-# serial only: on 2 ranks the last, undamped solve stalled at 1e-5 of the first residual in 2 of
-# 5 runs (rounding slivers of the cubes' coplanar side faces in the contact Jacobian;
-# docs/kernels.md, coincident face lines)
-@pytest.mark.serial
 def test_rigid_mode_damping_floating_cube():
     """The patch test's upper cube held only by contact, started touching (no initial sink):
     the damped proximal solves plus the final undamped solve reach the plain solution."""

@@ -10,9 +10,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fenics_matdepth.geometry.clip import (
+    CLIP_SHIFT,
     CLIP_TOL,
+    SHIFT_TANGENT,
     _intersect_pairs,
     _near_pairs,
+    clip_shift,
     intersection_polygon,
 )
 
@@ -31,9 +34,13 @@ def _det3(a, b, c):
     )
 
 
-def exact_barycentrics(x_tri, x_tet):
-    """Exact ``lam[i][j] = lambda_j(x_tri[i])`` (Fractions), None for a flat tetrahedron."""
-    xs = [[Fraction(float(v)) for v in row] for row in x_tri]
+def exact_barycentrics(x_tri, x_tet, shift=(0.0, 0.0, 0.0)):
+    """Exact ``lam[i][j] = lambda_j(x_tri[i] + shift)`` (Fractions, the float ``shift`` added
+    exactly), None for a flat tetrahedron."""
+    xs = [
+        [Fraction(float(v)) + Fraction(float(d)) for v, d in zip(row, shift, strict=True)]
+        for row in x_tri
+    ]
     xt = [[Fraction(float(v)) for v in row] for row in x_tet]
     e = [[xt[k][r] - xt[0][r] for r in range(3)] for k in (1, 2, 3)]
     det = _det3(*e)
@@ -51,8 +58,9 @@ def exact_barycentrics(x_tri, x_tet):
 
 
 def exact_polygon(x_tri, x_tet):
-    """Exact clipped polygon in triangle barycentrics (list of 3-tuples of Fractions)."""
-    lam = exact_barycentrics(x_tri, x_tet)
+    """Exact clipped polygon in triangle barycentrics (list of 3-tuples of Fractions), of the
+    triangle moved by the clipper's consistent shift (`clip_shift`, rounded to float)."""
+    lam = exact_barycentrics(x_tri, x_tet, clip_shift(x_tri))
     if lam is None:
         return []
     poly = [
@@ -153,14 +161,29 @@ def test_area_adversarial_grid(tri, tet):
     check_area(x_tri, x_tet)
 
 
-def test_triangle_is_tet_face():
-    """Triangle equal to a face, or inside a face plane: the whole triangle is the polygon."""
+def test_triangle_in_face_plane_counts_on_its_normal_side():
+    """A triangle in a face plane is moved off it by the consistent shift along its normal:
+    it is the polygon (up to the shift) when the normal points into the tetrahedron, nothing
+    when it points out."""
     x_tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-    poly = check_area(x_tet[[1, 2, 3]], x_tet)
-    assert polygon_area_3d(poly) == pytest.approx(triangle_area(x_tet[[1, 2, 3]]), rel=1e-12)
-    inner = np.array([[0.1, 0.1, 0.0], [0.5, 0.1, 0.0], [0.1, 0.5, 0.0]])
+    face = x_tet[[1, 2, 3]]  # normal (1, 1, 1): out of the tetrahedron
+    assert len(check_area(face, x_tet)) == 0
+    poly = check_area(face[[0, 2, 1]], x_tet)
+    assert polygon_area_3d(poly) == pytest.approx(triangle_area(face), rel=1e-9)
+    inner = np.array([[0.1, 0.1, 0.0], [0.5, 0.1, 0.0], [0.1, 0.5, 0.0]])  # normal +z: in
     poly = check_area(inner, x_tet)
-    assert polygon_area_3d(poly) == pytest.approx(triangle_area(inner), rel=1e-12)
+    assert polygon_area_3d(poly) == pytest.approx(triangle_area(inner), rel=1e-9)
+    assert len(check_area(inner[[0, 2, 1]], x_tet)) == 0
+
+
+def test_clip_shift_size_and_direction():
+    x_tri = np.array([[1.0, 2.0, 3.0], [3.0, 2.0, 3.0], [1.0, 2.0, 4.0]])  # normal -y, 2A = 2
+    # normal part CLIP_SHIFT sqrt(2 A) along -y; in-plane parts along the first edge (+x) and
+    # along n x t_1 = -y x x = +z
+    a, b = SHIFT_TANGENT
+    expected = CLIP_SHIFT * np.sqrt(2.0) * np.array([a, -1.0, b])
+    np.testing.assert_allclose(clip_shift(x_tri), expected, rtol=1e-14)
+    assert np.all(clip_shift(np.zeros((3, 3))) == 0.0)
 
 
 def test_polygon_orientation_and_containment():
@@ -179,7 +202,8 @@ def test_polygon_orientation_and_containment():
         normal = np.cross(x_tri[1] - x_tri[0], x_tri[2] - x_tri[0])
         s = sum(np.cross(poly[k], poly[(k + 1) % len(poly)]) for k in range(len(poly)))
         assert s @ normal > 0.0
-        assert np.abs((poly - x_tri[0]) @ normal).max() < 1e-12 * np.linalg.norm(normal)
+        plane = x_tri[0] + clip_shift(x_tri)  # the polygon lies in the shifted plane
+        assert np.abs((poly - plane) @ normal).max() < 1e-12 * np.linalg.norm(normal)
         lam = np.linalg.solve(
             np.vstack([x_tet.T, np.ones(4)]), np.vstack([poly.T, np.ones(len(poly))])
         )
@@ -206,16 +230,17 @@ def test_area_continuous_under_perturbation():
 
 
 def test_area_in_face_plane_continuous_over_both_sides():
-    """A triangle in the plane of a shared face: a tilt moves area from one tetrahedron to the
-    other (each jumps), but the total over the two stays continuous."""
+    """A triangle in the plane of a shared face counts in exactly one of the two tetrahedra
+    (the one its normal points into); a tilt moves area from one to the other (each jumps),
+    but the total over the two stays continuous."""
     x_tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     mirror = x_tet * np.array([1.0, 1.0, -1.0])
     x_tri = np.array([[0.2, 0.2, 0.0], [0.6, 0.2, 0.0], [0.2, 0.6, 0.0]])
     a_tri = triangle_area(x_tri)
     a0 = polygon_area_3d(check_area(x_tri, x_tet))
-    assert a0 == pytest.approx(a_tri, rel=1e-12)
-    # exactly in the plane the triangle is counted on both sides
-    assert polygon_area_3d(check_area(x_tri, mirror)) == pytest.approx(a_tri, rel=1e-12)
+    assert a0 == pytest.approx(a_tri, rel=1e-12)  # normal +z, into x_tet
+    # exactly in the plane the triangle is counted once, not on both sides
+    assert len(check_area(x_tri, mirror)) == 0
     rng = np.random.default_rng(5)
     # a tilt by an angle ~ scale puts the cut points at rounding / scale: the total over both
     # sides is exact to ~ 1e-16 / scale (relative), so scale stays >= 1e-8 here

@@ -18,7 +18,7 @@ from fenics_matdepth.contact.kernels import (
     collocation_energy,
     pair_energy,
 )
-from fenics_matdepth.geometry.clip import MAX_POLYGON_VERTICES, _intersection_polygon
+from fenics_matdepth.geometry.clip import MAX_POLYGON_VERTICES, _intersection_polygon, clip_shift
 
 EPS = 3.0  # penalty (pressure / length)
 # Relative errors (max-norm, relative to the largest entry) allowed against 4th-order central
@@ -103,8 +103,13 @@ def _det3(a, b, c):
 
 
 def exact_phi(x_tri, x_tet, depth):
-    """Exact int_P g^2 dxi over the clipped parameter polygon (rational arithmetic)."""
-    xs = [[Fraction(float(v)) for v in row] for row in x_tri]
+    """Exact int_P g^2 dxi over the clipped parameter polygon (rational arithmetic), of the
+    triangle moved by the clipper's consistent shift (`clip_shift`, added exactly)."""
+    shift = clip_shift(x_tri)
+    xs = [
+        [Fraction(float(v)) + Fraction(float(d)) for v, d in zip(row, shift, strict=True)]
+        for row in x_tri
+    ]
     xt = [[Fraction(float(v)) for v in row] for row in x_tet]
     d = [Fraction(float(v)) for v in depth]
     e = [[xt[k][r] - xt[0][r] for r in range(3)] for k in (1, 2, 3)]
@@ -169,9 +174,12 @@ def test_energy_constant_depth_is_area():
     corner tetrahedron cut by the plane z = 0.25 gives a known area."""
     x_tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     x_tri = np.array([[-1.0, -1.0, 0.25], [3.0, -1.0, 0.25], [-1.0, 3.0, 0.25]])
-    # the section z = 1/4 is a right triangle with legs 3/4
+    # the section z = 1/4 is a right triangle with legs 3/4, at the plane moved by the clip
+    # shift (4e-11 along +z): legs 3/4 - shift
+    dz = clip_shift(x_tri)[2]
+    assert 0.0 < dz < 1e-10
     energy, _, _ = pair_energy(x_tri, x_tet, np.full(4, 0.7), EPS)
-    assert energy == pytest.approx(EPS / 2 * 0.49 * 0.5 * 0.75**2, rel=1e-13)
+    assert energy == pytest.approx(EPS / 2 * 0.49 * 0.5 * (0.75 - dz) ** 2, rel=1e-13)
 
 
 def test_energy_against_exact_rational_random():

@@ -31,11 +31,11 @@ from numba import njit
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.clip import (
     MAX_POLYGON_VERTICES,
-    _barycentric_rows,
     _clip,
     _intersect_pairs,
     _tet_gradients,
     _triangle_area2,
+    _triangle_rows,
 )
 
 __all__ = [
@@ -345,7 +345,7 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         return -1.0
     if _tet_gradients(xt, grads) == 0.0:
         return -1.0
-    _barycentric_rows(xs, xt, grads, lam)
+    _triangle_rows(xs, xt, grads, lam)
     n = _clip(lam, mu, vlab, elab)
     if n < 3:
         return -1.0
@@ -1059,7 +1059,7 @@ def _sub_polygon(x, depth, tet, k, s, split, work):
     _gather_tet(x, depth, tet, k, s, split, xt, dt)
     if _tet_gradients(xt, grads) == 0.0:
         return 0
-    _barycentric_rows(xs, xt, grads, lam)
+    _triangle_rows(xs, xt, grads, lam)
     n = _clip(lam, mu, vlab, elab)
     for i in range(3):
         gi[i] = lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]

@@ -135,7 +135,7 @@ class ContactSurface:
         depth_block[cells.ravel()] = depth.x.array[dcells.ravel()]
         X_local = p1_dof_coordinates(V)
         self._owned_cells = owned_cells = cells[: mesh.topology.index_map(3).size_local]
-        self.tri = owned_boundary_triangle_dofs(mesh, cells)
+        self.tri = owned_boundary_triangle_dofs(mesh, cells, X_local)
         self._local_exchange = VertexExchange(comm, self._ranges, self._local_to_global, n_owned)
 
         # Collocation: owned boundary vertices with weight = 1/3 of the adjacent boundary area

@@ -37,9 +37,11 @@ from fenics_matdepth.geometry.bvh import _kept_pairs
 __all__ = [
     "CLIP_TOL",
     "MAX_POLYGON_VERTICES",
-    "COINCIDENT_RTOL",
+    "CLIP_SHIFT",
+    "SHIFT_TANGENT",
     "TET_VOLUME_RTOL",
     "TRI_AREA_RTOL",
+    "clip_shift",
     "intersection_polygon",
 ]
 
@@ -52,20 +54,31 @@ TET_VOLUME_RTOL = 1e-12
 #: A triangle with ``2 A <= TRI_AREA_RTOL * h**2`` (h = longest edge) has zero area: it
 #: contributes nothing (and its normal, hence the area gradient, is undefined).
 TRI_AREA_RTOL = 1e-14
-#: Two face lines of the parameter plane whose homogeneous coefficient vectors ``c_a, c_b``
-#: (columns of ``Lam``) have ``|c_a x c_b| <= COINCIDENT_RTOL |c_a| |c_b|`` are one line: the
-#: triangle's plane contains the tetrahedron edge where the two faces meet (touching side
-#: faces of stacked bodies, symmetry planes). Opposite orientations leave only that line
-#: (empty intersection); equal orientations are one half-plane (clipped once). Clipping by
-#: both would cut a rounding-noise sliver between them whose vertices, meeting points of
-#: almost parallel lines, have derivatives of order 1 / rounding (Hessian entries of 1e23 and
-#: contact forces 1e5 times too large were measured on the patch test).
-#: Set to 0 (only exactly parallel columns) after measurement: at 1e-12 the patch test's
-#: Jacobian became exact serially, but the full concave-corner demo stopped converging (2.7e-3
-#: after 40 iterations instead of 7e-15 in 27): deciding "empty" pair by pair removed a force of
-#: 5.6e-4 that the neighbouring tetrahedra's pieces, clipped with their own rounding, still
-#: balance; a consistent rule needs all tetrahedra around the edge (docs/kernels.md).
-COINCIDENT_RTOL = 0.0
+#: Every triangle is clipped as if moved by ``CLIP_SHIFT * sqrt(2 A)`` (A its area) along its
+#: normal ``(x1 - x0) x (x2 - x0)`` (outward for the contact surface's triangles), plus a
+#: generic in-plane component (SHIFT_TANGENT): a consistent perturbation that takes the
+#: triangle off every exact incidence of the input (its plane holding a tetrahedron edge, an
+#: edge in a face, a corner on a face, the triangle in a face), the same for all tetrahedra it
+#: meets. Without it, a plane holding an edge makes the two faces through that edge one line
+#: of the parameter plane up to rounding, and clipping by both cuts a rounding-noise sliver
+#: whose vertices, meeting points of almost parallel lines, have derivatives of order
+#: 1 / rounding (Hessian entries of 1e23 and forces 1e5 times too large were measured on the
+#: patch test); whether such a sliver exists, and which of two coincident lines bounds a
+#: polygon, was decided by rounding, pair by pair, so the force jumped with perturbations of
+#: the order of rounding. With the shift, every such sliver is a strip of width
+#: ``~CLIP_SHIFT h`` between two parallel lines (well-conditioned vertices) or nothing, as the
+#: perturbed geometry says, for every tetrahedron around the edge alike. The energy is that of
+#: the shifted surface (relative change of order ``CLIP_SHIFT h / g``); the derivatives are
+#: exact for it except the shift's own dependence on the triangle's shape (relative
+#: ``CLIP_SHIFT``). The shift is far above the rounding of barycentric values (``~1e-14`` for
+#: coordinates 100 elements from the origin), so the two lines never meet inside an element.
+CLIP_SHIFT = 1e-11
+#: In-plane components of the clip shift, in units of its normal component, along the
+#: triangle's first edge and perpendicular to it: generic numbers, so that the shift also moves
+#: a triangle edge off a tetrahedron face through it whatever the face's orientation (a face
+#: perpendicular to the triangle, which a shift along the normal alone leaves in place: the
+#: patch test's vertical faces under its horizontal contact triangles).
+SHIFT_TANGENT = (0.3183098861837907, 0.4472135954999579)
 #: Triangle (3) plus at most one new vertex per tetrahedron face (4).
 MAX_POLYGON_VERTICES = 8
 
@@ -126,12 +139,44 @@ def _tet_gradients(x_tet, grads):
 
 
 @njit(inline="always")
-def _barycentric_rows(x_tri, x_tet, grads, lam):
-    """``lam[i, j] = lambda_j(x_tri[i])`` for the n points of ``x_tri`` (n, 3)."""
-    for i in range(x_tri.shape[0]):
-        dx = x_tri[i, 0] - x_tet[0, 0]
-        dy = x_tri[i, 1] - x_tet[0, 1]
-        dz = x_tri[i, 2] - x_tet[0, 2]
+def _clip_shift(x_tri):
+    """The clip shift of a triangle, as a 3-tuple (zeros for a zero-area triangle):
+    ``CLIP_SHIFT / sqrt(|n|) * (n + SHIFT_TANGENT[0] |n| t_1 + SHIFT_TANGENT[1] |n| t_2)``,
+    ``n = (x1 - x0) x (x2 - x0)``, ``t_1`` the unit vector along ``x1 - x0`` and ``t_2 = n x
+    t_1 / |n|``."""
+    ax = x_tri[1, 0] - x_tri[0, 0]
+    ay = x_tri[1, 1] - x_tri[0, 1]
+    az = x_tri[1, 2] - x_tri[0, 2]
+    bx = x_tri[2, 0] - x_tri[0, 0]
+    by = x_tri[2, 1] - x_tri[0, 1]
+    bz = x_tri[2, 2] - x_tri[0, 2]
+    nx = ay * bz - az * by
+    ny = az * bx - ax * bz
+    nz = ax * by - ay * bx
+    a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
+    la = np.sqrt(ax * ax + ay * ay + az * az)
+    if not (a2 > 0.0 and la > 0.0):
+        return 0.0, 0.0, 0.0
+    f = CLIP_SHIFT / np.sqrt(a2)
+    # |n| t_1 = (|n| / |a|) a and |n| t_2 = n x a / |a|
+    c1 = SHIFT_TANGENT[0] * a2 / la
+    c2 = SHIFT_TANGENT[1] / la
+    return (
+        f * (nx + c1 * ax + c2 * (ny * az - nz * ay)),
+        f * (ny + c1 * ay + c2 * (nz * ax - nx * az)),
+        f * (nz + c1 * az + c2 * (nx * ay - ny * ax)),
+    )
+
+
+@njit(inline="always")
+def _triangle_rows(x_tri, x_tet, grads, lam):
+    """``lam[i, j] = lambda_j(x_tri[i] + shift)`` for the 3 triangle corners, moved by the
+    consistent clip shift (CLIP_SHIFT) along the triangle's normal."""
+    sx, sy, sz = _clip_shift(x_tri)
+    for i in range(3):
+        dx = (x_tri[i, 0] - x_tet[0, 0]) + sx
+        dy = (x_tri[i, 1] - x_tet[0, 1]) + sy
+        dz = (x_tri[i, 2] - x_tet[0, 2]) + sz
         s = 0.0
         for j in range(1, 4):
             v = grads[j, 0] * dx + grads[j, 1] * dy + grads[j, 2] * dz
@@ -148,38 +193,6 @@ def _snap(lam):
         for j in range(4):
             if abs(lam[i, j]) <= CLIP_TOL * size:
                 lam[i, j] = 0.0
-
-
-@njit(inline="always")
-def _coincident(lam, a, b):
-    """Whether face lines a and b of the parameter plane are one line (COINCIDENT_RTOL):
-    1 with the same orientation, -1 with opposite ones, 0 if they are distinct lines."""
-    c0 = lam[1, a] * lam[2, b] - lam[2, a] * lam[1, b]
-    c1 = lam[2, a] * lam[0, b] - lam[0, a] * lam[2, b]
-    c2 = lam[0, a] * lam[1, b] - lam[1, a] * lam[0, b]
-    na = lam[0, a] * lam[0, a] + lam[1, a] * lam[1, a] + lam[2, a] * lam[2, a]
-    nb = lam[0, b] * lam[0, b] + lam[1, b] * lam[1, b] + lam[2, b] * lam[2, b]
-    if na == 0.0 or nb == 0.0:
-        return 0  # the triangle lies in that face's plane: no line
-    if c0 * c0 + c1 * c1 + c2 * c2 > COINCIDENT_RTOL * COINCIDENT_RTOL * na * nb:
-        return 0
-    dot = lam[0, a] * lam[0, b] + lam[1, a] * lam[1, b] + lam[2, a] * lam[2, b]
-    return 1 if dot > 0.0 else -1
-
-
-@njit(inline="always")
-def _earlier_coincident(lam, j):
-    """How face line j relates to the lines 0..j-1 (COINCIDENT_RTOL): -1 if one of them is the
-    same line with the opposite orientation (nothing is left), 1 if one is the same line with
-    the same orientation (clipping by j adds nothing), else 0."""
-    relation = 0
-    for j0 in range(j):
-        r = _coincident(lam, j0, j)
-        if r < 0:
-            return -1
-        if r > 0:
-            relation = 1
-    return relation
 
 
 @njit(inline="always")
@@ -217,11 +230,6 @@ def _clip(lam, mu, vlab, elab):
     n = 3
     cur = 0
     for j in range(4):
-        relation = _earlier_coincident(lam, j)
-        if relation < 0:
-            return 0
-        if relation > 0:
-            continue
         nxt = 1 - cur
         # all vertices inside: nothing to clip
         n_out = 0
@@ -298,11 +306,6 @@ def _clip_nonempty(lam, buf):
     n = 3
     cur = 0
     for j in range(4):
-        relation = _earlier_coincident(lam, j)
-        if relation < 0:
-            return False
-        if relation > 0:
-            continue
         nxt = 1 - cur
         m = 0
         Lp = buf[cur, 0, j]
@@ -368,7 +371,7 @@ def _intersection_polygon(x_tri, x_tet, mu, vlab, elab):
     if _triangle_area2(x_tri) == 0.0:
         return 0
     lam = np.empty((3, 4), dtype=FLOAT)
-    _barycentric_rows(x_tri, x_tet, grads, lam)
+    _triangle_rows(x_tri, x_tet, grads, lam)
     return _clip(lam, mu, vlab, elab)
 
 
@@ -402,7 +405,7 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
                 xs[a, r] = x[tri[pair_tri[p], a], r]
         if _tet_gradients(xt, grads) == 0.0:
             continue
-        _barycentric_rows(xs, xt, grads, lam)
+        _triangle_rows(xs, xt, grads, lam)
         _snap(lam)
         # a tetrahedron face plane separating the triangle settles it without clipping, and
         # so does a triangle vertex strictly inside the tetrahedron
@@ -541,4 +544,25 @@ def intersection_polygon(x_tri: np.ndarray, x_tet: np.ndarray) -> np.ndarray:
     vlab = np.empty((2, MAX_POLYGON_VERTICES, 2), dtype=np.int64)
     elab = np.empty((2, MAX_POLYGON_VERTICES), dtype=np.int64)
     n = _intersection_polygon(x_tri, x_tet, mu, vlab, elab)
-    return mu[0, :n] @ x_tri
+    return mu[0, :n] @ (x_tri + clip_shift(x_tri))
+
+
+def clip_shift(x_tri: np.ndarray) -> np.ndarray:
+    """The consistent displacement (length) with which the clipper moves a triangle off exact
+    incidences: ``CLIP_SHIFT * sqrt(2 A)`` along ``(x1 - x0) x (x2 - x0)`` plus a generic
+    in-plane part (SHIFT_TANGENT; zeros for a zero-area triangle). The intersection polygons
+    and the contact energy are those of the moved triangle.
+
+    Args:
+        x_tri: (3, 3) triangle vertex coordinates (length).
+
+    Returns:
+        (3,) displacement.
+    """
+    x_tri = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
+    return np.array(_clip_shift_tuple(x_tri), dtype=FLOAT)
+
+
+@njit(cache=True)
+def _clip_shift_tuple(x_tri):
+    return _clip_shift(x_tri)
