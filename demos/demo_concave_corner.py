@@ -192,7 +192,7 @@ depth.name = "material_depth"
 # +
 youngs_modulus, poisson_ratio = 1.0, 0.3  # MPa, -
 mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(youngs_modulus, poisson_ratio)
-penetration = 0.2  # mm: how far the wedge's edge is pushed behind the groove's bottom
+penetration = 0.1  # mm: how far the wedge's edge is pushed behind the groove's bottom
 push = np.array([-(gap + penetration), 0.0, 0.0])
 penalty = fm.propose_penalty(domain, youngs_modulus, factor=10.0, h=corner_mesh_size)  # MPa/mm
 
