@@ -330,6 +330,7 @@ def _solve_patch(
     if damping is None:  # with damping the upper cube starts where it is, touching
         u.x.array.reshape(-1, 3)[upper_blocks, 2] = -p / (2.0 * penalty)
     u.x.scatter_forward()
+    first_guess = u.x.array.copy()
 
     contact = fm.ContactOperator(
         u, fm.material_depth(mesh), penalty=penalty, split_deficient=split_deficient
@@ -385,6 +386,7 @@ def _solve_patch(
     return {
         "solver": solver,
         "contact": contact,
+        "first_guess": first_guess,
         "num_cells": mesh.topology.index_map(3).size_global,
         "iterations": result.iterations,
         "total_force": float(np.sum(force[upper, 2])),
@@ -397,15 +399,16 @@ def _solve_patch(
 
 
 def test_patch_contact_jacobian_matches_central_differences():
-    """At the solved patch state the cubes' side faces stay coplanar and the structured meshes'
-    faces stand on the interface triangles' edges: exact incidences. The contact Jacobian must
-    still be the derivative of the contact residual there, along a direction that respects the
-    rollers. While the clipper let rounding decide a sliver between two faces through such an
-    edge, it was not: Jacobian entries of 1e15 and central differences 2e5 times off (856
-    against 2.2 on two ranks); with the clip shift (`fenics_matdepth.geometry.clip.CLIP_SHIFT`)
-    they agree to 2e-6. (With displacements far below 1e-5 the differences see the steep but
-    bounded curvature of the shifted geometry's near-incidences and the agreement degrades.)"""
-    out = _solve_patch(10.0)
+    """The patch's initial state (the upper cube sunk by p / (2 eps), both undeformed): the
+    cubes' side faces are coplanar and the structured meshes' faces stand on the interface
+    triangles' edges, exact incidences. The contact Jacobian must be the derivative of the
+    contact residual there, along a direction that respects the rollers. While the clipper let
+    rounding decide a sliver between two faces through such an edge, it was not (a Jacobian
+    of infinity norm 6e13, central differences off by 100 %); with the clip shift
+    (`fenics_matdepth.geometry.clip.CLIP_SHIFT`) the norm is 0.8 and they agree to 3e-4
+    (with displacements of 1e-5 to 1e-4; below, the differences step across the shift's
+    near-incidences and the agreement degrades, docs/kernels.md)."""
+    out = _solve_patch(10.0, rtol=1e-7)  # see test_augmented.PATCH_RTOL
     contact = out["contact"]
     contact.set_bcs([])  # the whole Jacobian: the rows and columns of the rollers too
     u = contact.u
@@ -415,7 +418,7 @@ def test_patch_contact_jacobian_matches_central_differences():
     v.x.array[:] = 1e-3 * np.cos(np.array([1.3, 2.9, 0.7]) * x[:, [1, 2, 0]] + 0.2).ravel()
     on_roller = np.isclose(x, 0.0)  # u_x = 0 on x = 0, u_y = 0 on y = 0, u_z = 0 on z = 0
     v.x.array.reshape(-1, 3)[on_roller] = 0.0
-    u0 = u.x.array.copy()
+    u0 = out["first_guess"]
 
     def residual_at(t):
         u.x.array[:] = u0 + t * v.x.array
@@ -435,8 +438,8 @@ def test_patch_contact_jacobian_matches_central_differences():
     A.mult(v.x.petsc_vec, Hv)
     fd.axpy(-1.0, Hv)
     assert Hv.norm() > 0.0
-    assert fd.norm() <= 1e-4 * Hv.norm(), (fd.norm(), Hv.norm())
-    assert A.norm(PETSc.NormType.NORM_INFINITY) < 1e3 * 10.0  # a few penalties times h^2
+    assert fd.norm() <= 1e-3 * Hv.norm(), (fd.norm(), Hv.norm())
+    assert A.norm(PETSc.NormType.NORM_INFINITY) < 10.0  # penalty 10 times h^2 times a few
     A.destroy()
 
 
