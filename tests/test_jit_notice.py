@@ -96,8 +96,14 @@ def test_cached_kernel_follows_an_edit_of_another_module(tmp_path):
     copy = tmp_path / "fenics_matdepth"
     shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__"))
     (copy / "_probe_b.py").write_text(_PROBE_B)
-    env = {**os.environ, "PYTHONPATH": str(tmp_path), "MATDEPTH_QUIET_JIT": "1"}
-    env.pop("NUMBA_CACHE_DIR", None)
+    # a fresh process: not an MPI rank of this run (a child inheriting the launcher's
+    # variables would try to join it and hang), and numba's default cache location
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("OMPI_", "PMIX_", "PRTE_", "MPI_")) and k != "NUMBA_CACHE_DIR"
+    }
+    env.update(PYTHONPATH=str(tmp_path), MATDEPTH_QUIET_JIT="1")
     script = "import fenics_matdepth._probe_b as b; print(b.value())"
 
     def run(value):

@@ -139,20 +139,25 @@ def _tet_gradients(x_tet, grads):
 
 
 @njit(inline="always")
-def _clip_shift(x_tri):
-    """The clip shift of a triangle, as a 3-tuple (zeros for a zero-area triangle):
-    ``CLIP_SHIFT / sqrt(|n|) * (n + SHIFT_TANGENT[0] |n| t_1 + SHIFT_TANGENT[1] |n| t_2)``,
-    ``n = (x1 - x0) x (x2 - x0)``, ``t_1`` the unit vector along ``x1 - x0`` and ``t_2 = n x
-    t_1 / |n|``."""
+def _edges_and_normal(x_tri):
+    """Edges ``a = x1 - x0``, ``b = x2 - x0`` and normal ``n = a x b`` of a triangle, as a
+    9-tuple (ax, ay, az, bx, by, bz, nx, ny, nz)."""
     ax = x_tri[1, 0] - x_tri[0, 0]
     ay = x_tri[1, 1] - x_tri[0, 1]
     az = x_tri[1, 2] - x_tri[0, 2]
     bx = x_tri[2, 0] - x_tri[0, 0]
     by = x_tri[2, 1] - x_tri[0, 1]
     bz = x_tri[2, 2] - x_tri[0, 2]
-    nx = ay * bz - az * by
-    ny = az * bx - ax * bz
-    nz = ax * by - ay * bx
+    return ax, ay, az, bx, by, bz, ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
+@njit(inline="always")
+def _clip_shift(x_tri):
+    """The clip shift of a triangle, as a 3-tuple (zeros for a zero-area triangle):
+    ``CLIP_SHIFT / sqrt(|n|) * (n + SHIFT_TANGENT[0] |n| t_1 + SHIFT_TANGENT[1] |n| t_2)``,
+    ``n = (x1 - x0) x (x2 - x0)``, ``t_1`` the unit vector along ``x1 - x0`` and ``t_2 = n x
+    t_1 / |n|``."""
+    ax, ay, az, _, _, _, nx, ny, nz = _edges_and_normal(x_tri)
     a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     la = np.sqrt(ax * ax + ay * ay + az * az)
     if not (a2 > 0.0 and la > 0.0):
@@ -343,15 +348,7 @@ def _polygon_area_ratio(mu, n):
 @njit(inline="always")
 def _triangle_area2(x_tri):
     """Twice the triangle area (length^2), 0.0 below TRI_AREA_RTOL."""
-    ax = x_tri[1, 0] - x_tri[0, 0]
-    ay = x_tri[1, 1] - x_tri[0, 1]
-    az = x_tri[1, 2] - x_tri[0, 2]
-    bx = x_tri[2, 0] - x_tri[0, 0]
-    by = x_tri[2, 1] - x_tri[0, 1]
-    bz = x_tri[2, 2] - x_tri[0, 2]
-    nx = ay * bz - az * by
-    ny = az * bx - ax * bz
-    nz = ax * by - ay * bx
+    ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(x_tri)
     a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     cx = x_tri[2, 0] - x_tri[1, 0]
     cy = x_tri[2, 1] - x_tri[1, 1]
