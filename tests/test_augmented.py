@@ -13,7 +13,11 @@ from fenics_matdepth.contact.kernels import (
     pair_energy,
     pressure_moments,
 )
-from fenics_matdepth.geometry.clip import MAX_POLYGON_VERTICES, _intersection_polygon
+from fenics_matdepth.geometry.clip import (
+    MAX_POLYGON_VERTICES,
+    _intersection_polygon,
+    clip_shift,
+)
 
 EPS = 3.0
 FD_RTOL = 1e-6
@@ -29,8 +33,10 @@ def _polygon(x_tri, x_tet):
 
 def _quadrature(x_tri, x_tet, depth, integrand):
     """``int_{T cap K} integrand(mu, g) dA`` by the edge-midpoint rule (exact for quadratics)
-    on a fan of the intersection polygon; ``g`` from barycentric coordinates computed here."""
+    on a fan of the intersection polygon; ``g`` from barycentric coordinates computed here, at
+    the points of the triangle moved by the clipper's consistent shift (`clip_shift`)."""
     mu = _polygon(x_tri, x_tet)
+    shifted = x_tri + clip_shift(x_tri)
     e = (x_tet[1:] - x_tet[0]).T
 
     def depth_at(y):
@@ -47,7 +53,7 @@ def _quadrature(x_tri, x_tet, depth, integrand):
         )
         for a, b in ((0, 1), (1, 2), (2, 0)):
             m = 0.5 * (tri[a] + tri[b])
-            total += area / 3.0 * integrand(m, depth_at(m @ x_tri)) * a2
+            total += area / 3.0 * integrand(m, depth_at(m @ shifted)) * a2
     return total
 
 
@@ -139,24 +145,15 @@ def test_pressure_moments():
 # ------------------------------------------------------------------------------------------
 
 
-# The cubes' free side faces (x = 1, y = 1) are coplanar in the exact solution; Newton keeps
-# them so to about 1e-12, the size of the clip shift there (2e-12, `CLIP_SHIFT`), so the
-# last iterate may meet a near-incidence the shift does not separate: measured on 2 ranks, 1
-# plain patch solve in 6 stopped at 3e-11 (1.4e-8 of its start) instead of 1e-13. A relative
-# tolerance of 1e-7 is met before that in every run (with a shift of 1e-9, 8 of 8 runs reached
-# 1e-13, but the shift's own derivative, left out of the kernels, then shows).
-PATCH_RTOL = 1e-7
-
-
 def test_patch_augmented_lagrangian():
     """A soft penalty (eps h / E ~ 1.4) leaves an overlap of p / (2 eps) and a pressure a few %
     off uniform; the augmented Lagrangian brings the overlap below the tolerance everywhere
     (``max_penetration``: over every intersection polygon, the footprint's edges included) and
     the pressure to uniform within 1 % over every column of the upper mesh."""
     penalty = 10.0
-    plain = _solve_patch(penalty, rtol=PATCH_RTOL)
+    plain = _solve_patch(penalty)
     tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)  # 10 % of the penalty's overlap
-    out = _solve_patch(penalty, rtol=PATCH_RTOL, augmented={"tol": tol, "max_updates": 10})
+    out = _solve_patch(penalty, augmented={"tol": tol, "max_updates": 10})
     solver = out["solver"]
     p = PATCH_PRESSURE
     diag = solver.diagnostics()
@@ -186,14 +183,12 @@ def test_rigid_mode_damping_floating_cube():
     """The patch test's upper cube held only by contact, started touching (no initial sink):
     the damped proximal solves plus the final undamped solve reach the plain solution."""
     penalty = 10.0
-    plain = _solve_patch(penalty, rtol=PATCH_RTOL)
+    plain = _solve_patch(penalty)
     # a free cube moves p / k in the first damped solve: half the penalty's overlap p / (2 eps)
     # (with a fixed k giving a motion of h / 10, 28 times that overlap, the cube sank so deep
     # that the second damped solve stopped in the line search; with this k fixed, the proximal
     # solves crept, each reducing the residual by 10 %)
-    damped = _solve_patch(
-        penalty, rtol=PATCH_RTOL, damping=PATCH_PRESSURE / (0.25 * PATCH_PRESSURE / penalty)
-    )
+    damped = _solve_patch(penalty, damping=PATCH_PRESSURE / (0.25 * PATCH_PRESSURE / penalty))
     _report(
         f"\nfloating cube: {damped['solver'].damped_solves} damped solves, "
         f"{damped['iterations']} Newton it (plain from a sunk start: {plain['iterations']}); "

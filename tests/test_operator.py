@@ -218,8 +218,8 @@ def test_max_penetration_of_sunk_block(integration):
     u.x.scatter_forward()
     op.update()
     # the clip shift moves each triangle by CLIP_SHIFT sqrt(2 A) (the lower box's top triangles
-    # by 3.3e-12 up, into the upper box)
-    assert np.isclose(op.max_penetration(), 0.2, rtol=1e-10, atol=0.0)
+    # by 3.3e-10 up, into the upper box)
+    assert np.isclose(op.max_penetration(), 0.2, rtol=1e-8, atol=0.0)
 
 
 def test_force_resultants_are_opposite_and_match_rigid_translation():

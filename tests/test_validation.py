@@ -408,7 +408,7 @@ def test_patch_contact_jacobian_matches_central_differences():
     (`fenics_matdepth.geometry.clip.CLIP_SHIFT`) the norm is 0.8 and they agree to 3e-4
     (with displacements of 1e-5 to 1e-4; below, the differences step across the shift's
     near-incidences and the agreement degrades, docs/kernels.md)."""
-    out = _solve_patch(10.0, rtol=1e-7)  # see test_augmented.PATCH_RTOL
+    out = _solve_patch(10.0)
     contact = out["contact"]
     contact.set_bcs([])  # the whole Jacobian: the rows and columns of the rollers too
     u = contact.u

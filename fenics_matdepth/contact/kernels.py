@@ -32,6 +32,7 @@ from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.clip import (
     MAX_POLYGON_VERTICES,
     _clip,
+    _clip_shift,
     _intersect_pairs,
     _tet_gradients,
     _triangle_area2,
@@ -79,6 +80,8 @@ def _area_work():
         np.empty((9, 3), dtype=FLOAT),  # 19 dn[3 i + a] = d (triangle normal) / d x_ia
         np.empty(_NV, dtype=np.int64),  # 20 number of live columns per vertex
         np.empty((5, 9), dtype=FLOAT),  # 21 gradients of the edge integrand's factors
+        np.empty((3, 3), dtype=FLOAT),  # 22 a perturbed copy of the triangle
+        np.empty((3, 9), dtype=FLOAT),  # 23 d (clip shift) / d x_tri
     )
 
 
@@ -283,6 +286,59 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
                     hphi[4 * i + j, 4 * i2 + j2] += bg * dt[j] * dt[j2]
 
 
+@njit(inline="always")
+def _clip_shift_jacobian(xs, a2, xq, ds):
+    """``ds[a, 3 m + b] = d s_a / d x_mb`` of the clip shift s (`_clip_shift`) by central
+    differences with a step of 1e-5 sqrt(2 A): s is of size CLIP_SHIFT h, so the differences'
+    truncation and rounding errors, about 1e-10 and 1e-11 of ds, are of order 1e-20 h in the
+    pair's derivatives."""
+    eta = 1e-5 * np.sqrt(a2)
+    for m in range(3):
+        for r in range(3):
+            xq[m, r] = xs[m, r]
+    for m in range(3):
+        for b in range(3):
+            xq[m, b] = xs[m, b] + eta
+            px, py, pz = _clip_shift(xq)
+            xq[m, b] = xs[m, b] - eta
+            mx, my, mz = _clip_shift(xq)
+            xq[m, b] = xs[m, b]
+            ds[0, 3 * m + b] = (px - mx) / (2.0 * eta)
+            ds[1, 3 * m + b] = (py - my) / (2.0 * eta)
+            ds[2, 3 * m + b] = (pz - mz) / (2.0 * eta)
+
+
+@njit(inline="always")
+def _shift_rows(g, ds):
+    """``g[:9] <- T^T g[:9]``, ``T = I + [ds; ds; ds]`` (every corner moves by the same s)."""
+    g0 = g[0] + g[3] + g[6]
+    g1 = g[1] + g[4] + g[7]
+    g2 = g[2] + g[5] + g[8]
+    for c in range(9):
+        g[c] += g0 * ds[0, c] + g1 * ds[1, c] + g2 * ds[2, c]
+
+
+@njit(inline="always")
+def _shift_hessian(hess, p, ds, tmp):
+    """``hess[p] <- P^T hess[p] P`` with P = T on the 9 triangle coordinates, I elsewhere."""
+    for r in range(21):  # columns: H P
+        s0 = hess[p, r, 0] + hess[p, r, 3] + hess[p, r, 6]
+        s1 = hess[p, r, 1] + hess[p, r, 4] + hess[p, r, 7]
+        s2 = hess[p, r, 2] + hess[p, r, 5] + hess[p, r, 8]
+        for c in range(9):
+            tmp[0, c] = s0 * ds[0, c] + s1 * ds[1, c] + s2 * ds[2, c]
+        for c in range(9):
+            hess[p, r, c] += tmp[0, c]
+    for c in range(21):  # rows: P^T (H P)
+        s0 = hess[p, 0, c] + hess[p, 3, c] + hess[p, 6, c]
+        s1 = hess[p, 1, c] + hess[p, 4, c] + hess[p, 7, c]
+        s2 = hess[p, 2, c] + hess[p, 5, c] + hess[p, 8, c]
+        for r in range(9):
+            tmp[0, r] = s0 * ds[0, r] + s1 * ds[1, r] + s2 * ds[2, r]
+        for r in range(9):
+            hess[p, r, c] += tmp[0, r]
+
+
 # A function of its own, called from the pair loops, not inlined there (inline="always"):
 # numba's IR inlining of this large kernel made the first run's compilation about three
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up).
@@ -332,6 +388,8 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         dn,
         ncol,
         zv,
+        xq,
+        ds,
     ) = work
     if want_grad:
         for c in range(21):
@@ -523,6 +581,11 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     for r in range(9):
         ga[r] = 0.5 * (nx * dn[r, 0] + ny * dn[r, 1] + nz * dn[r, 2]) * inv_n
 
+    # Phi is evaluated at the shifted corners y_i = x_i + s(x_tri) (the clip shift): its
+    # triangle gradient is T^T dPhi/dy with T = dy/dx = I + [ds/dx] for every corner
+    _clip_shift_jacobian(xs, a2, xq, ds)
+    _shift_rows(gx, ds)
+
     for c in range(9):
         grad[p, c] = penalty * (phi * ga[c] + area * gx[c])
     for c in range(9, 21):
@@ -603,6 +666,9 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
                             lam[i, l] * ww[i, a] * grads[k, b] + lam[i, k] * grads[l, a] * ww[i, b]
                         )
                     hess[p, 9 + 3 * k + a, 9 + 3 * l + b] += acc
+    # the clip shift: T^T H T on the triangle rows and columns (the second derivatives of the
+    # shift, of relative size CLIP_SHIFT, are left out)
+    _shift_hessian(hess, p, ds, zv)
     # E = eps (A Phi): product rule
     for r in range(21):
         for c in range(21):

@@ -68,11 +68,15 @@ TRI_AREA_RTOL = 1e-14
 #: the order of rounding. With the shift, every such sliver is a strip of width
 #: ``~CLIP_SHIFT h`` between two parallel lines (well-conditioned vertices) or nothing, as the
 #: perturbed geometry says, for every tetrahedron around the edge alike. The energy is that of
-#: the shifted surface (relative change of order ``CLIP_SHIFT h / g``); the derivatives are
-#: exact for it except the shift's own dependence on the triangle's shape (relative
-#: ``CLIP_SHIFT``). The shift is far above the rounding of barycentric values (``~1e-14`` for
-#: coordinates 100 elements from the origin), so the two lines never meet inside an element.
-CLIP_SHIFT = 1e-11
+#: the shifted surface (relative change of order ``CLIP_SHIFT h / g``); the kernels
+#: differentiate through the shift too (`fenics_matdepth.contact.kernels`), leaving out only
+#: its second derivatives (relative ``CLIP_SHIFT`` in the Hessian). The shift is far above the
+#: rounding of barycentric values (``~1e-14`` for coordinates 100 elements from the origin) and
+#: above the accuracy to which a Newton solution keeps two faces coplanar that are coplanar in
+#: the exact solution (about 1e-12 of the element size: at 1e-11 such near-incidences of the
+#: solution stalled 1 patch solve in 6 on 2 ranks), so two face lines do not meet inside an
+#: element.
+CLIP_SHIFT = 1e-9
 #: In-plane components of the clip shift, in units of its normal component, along the
 #: triangle's first edge and perpendicular to it: generic numbers, so that the shift also moves
 #: a triangle edge off a tetrahedron face through it whatever the face's orientation (a face
