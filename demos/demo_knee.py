@@ -549,7 +549,7 @@ vtx.write(start_degrees)
 
 def counting_set_flexion(t: float) -> None:
     if (output / "knee_stop").exists():
-        raise RuntimeError(f"stopped at {np.degrees(last['angle']):.1f} deg by {output}/knee_stop")
+        raise fm.StopRequested(f"{output}/knee_stop exists")
     attempts["count"] += 1
     set_flexion(t)
 
@@ -600,6 +600,8 @@ try:
         checkpoint=checkpoint,
         resume=checkpoint if resume else None,
     )
+except fm.StopRequested as err:  # on request: the checkpoint holds the last step
+    failure = str(err)
 except RuntimeError as err:  # the history stops at the last converged step: report it
     failure = str(err)
 solve_seconds = time.perf_counter() - tic

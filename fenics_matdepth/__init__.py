@@ -38,6 +38,7 @@ from fenics_matdepth.solvers import (
     LoadStep,
     NonlinearContactProblem,
     SolveResult,
+    StopRequested,
     rigid_body_modes,
     solve_load_steps,
 )
@@ -57,6 +58,7 @@ __all__ = [
     "RigidModeDamping",
     "RigidRotation",
     "SolveResult",
+    "StopRequested",
     "TimeStep",
     "UzawaUpdate",
     "__version__",

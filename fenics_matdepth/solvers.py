@@ -867,14 +867,40 @@ def _write(writer, u: dolfinx.fem.Function, load: float) -> None:
         writer(load)
 
 
+class StopRequested(Exception):
+    """Raise it from a :func:`solve_load_steps` callback (``set_load`` or ``writer``) to end the
+    run cleanly, e.g. when a stop file appears: ``solve_load_steps`` then raises
+    ``StopRequested`` on every rank, with ``u`` holding the last converged state (saved in the
+    checkpoint, if any), ``load`` its load factor and ``steps`` the steps converged in this
+    call.
+
+    Args:
+        message: why the run stops.
+        load: set by ``solve_load_steps``: the last converged load factor.
+        steps: set by ``solve_load_steps``: the converged steps of the call.
+    """
+
+    def __init__(self, message: str = "stop requested", load=None, steps=None):
+        super().__init__(message)
+        self.load = load
+        self.steps = steps if steps is not None else []
+
+
 def _collective_call(comm: MPI.Comm, what: str, fix: str, function, *args) -> None:
     """Call ``function(*args)`` on every rank; if it raises on any rank, raise RuntimeError on
-    every rank, naming ``what`` failed and the ``fix``."""
+    every rank, naming ``what`` failed and the ``fix``; a :class:`StopRequested` on any rank is
+    raised as such on every rank."""
+    stop = None
     try:
         function(*args)
         message = None
+    except StopRequested as err:
+        message, stop = None, str(err)
     except Exception as err:  # any error of user code is reported
         message = f"{what} raised {type(err).__name__}: {err}. {fix}"
+    stops = [m for m in comm.allgather(stop) if m is not None]
+    if stops:
+        raise StopRequested(stops[0])
     collective_error(comm, message, RuntimeError)
 
 
@@ -935,6 +961,10 @@ def solve_load_steps(
             converged state, whose load factor the message gives, and everything already
             written stays written. Also (on every rank) if ``set_load`` or ``writer`` raises,
             with ``u`` holding the last converged state.
+        StopRequested: (on every rank) if ``set_load`` or ``writer`` raised it: a stop on
+            request, not a failure; ``u`` holds the last converged state (the checkpoint holds
+            it too), the exception's ``load`` and ``steps`` say where the run stopped. The load
+            last set may be the next step's: call ``set_load(err.load)`` to restore it.
     """
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
@@ -1033,6 +1063,15 @@ def solve_load_steps(
                     {"u": saved, "u_previous": previous}, load=t, dt=float(dt),
                     dt_previous=float(dt_previous), steps=done + len(steps), **run,
                 )  # fmt: skip
+    except StopRequested as err:
+        u.x.array[:] = saved
+        where = f"; it is saved in {checkpoint}" if checkpoint is not None else ""
+        raise StopRequested(
+            f"stopped on request at load factor {t:.6g} ({err}): u holds the converged state "
+            f"there{where}",
+            load=t,
+            steps=steps,
+        ) from None
     finally:
         reporter.close()
     return steps

@@ -259,6 +259,34 @@ def test_interrupted_run_resumes_exactly(tmp_path_factory, predictor):
     assert comm.allreduce(np.abs(a - b).max(), op=MPI.MAX) <= 1e-12 * scale
 
 
+def test_stop_request_ends_the_run_cleanly(tmp_path_factory):
+    """``StopRequested`` raised by set_load on one rank only ends the run on every rank as a
+    stop, not as an error: u holds the last converged state (equal to the checkpoint's), the
+    exception carries its load and the steps, and the message does not blame the callback."""
+    comm = MPI.COMM_WORLD
+    folder = Path(comm.bcast(str(tmp_path_factory.mktemp("stop")) if comm.rank == 0 else None))
+    path = folder / "press.npz"
+    problem, g = _touching_problem(comm)
+    calls = []
+
+    def set_load(t):
+        calls.append(t)
+        if len(calls) > 2 and comm.rank == comm.size - 1:  # a stop file seen by one rank
+            raise fm.StopRequested("stop file found")
+        g.x.array.reshape(-1, 3)[:, 2] = -0.04 * t
+
+    with pytest.raises(fm.StopRequested) as caught:
+        fm.solve_load_steps(problem, set_load, num_steps=5, progress=False, checkpoint=path)
+    err = caught.value
+    assert np.isclose(err.load, 0.4) and len(err.steps) == 2
+    assert np.isclose(err.steps[-1].load, 0.4)
+    assert "stopped on request at load factor 0.4" in str(err) and "stop file found" in str(err)
+    assert "Fix" not in str(err)
+    arrays, meta = Checkpoint(path, problem.u.function_space).load()
+    assert np.isclose(meta["load"], 0.4)
+    assert np.array_equal(arrays["u"], problem.u.x.array)
+
+
 def test_checkpoint_round_trip_and_mesh_check(tmp_path_factory):
     """Saved arrays come back bit for bit; another mesh is refused with a clear error."""
     comm = MPI.COMM_WORLD
