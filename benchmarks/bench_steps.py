@@ -49,6 +49,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--lower", type=int, nargs=3, default=(24, 24, 8))
     parser.add_argument("--upper", type=int, nargs=3, default=(16, 16, 8))
+    parser.add_argument("--petsc", nargs="*", default=[], help="extra PETSc options key=value")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     phases = {"imports": time.perf_counter() - START}
@@ -77,7 +78,14 @@ def main() -> None:
     # the penalty of the soft body's modulus: the soft block's base is what penetrates
     penalty = fm.propose_penalty(mesh, 1.0, factor=10.0)
     contact = fm.ContactOperator(u, depth, penalty=penalty)
-    problem = fm.ContactProblem(residual, u, contact, bcs=bcs, energy=psi * ufl.dx)
+    problem = fm.ContactProblem(
+        residual,
+        u,
+        contact,
+        bcs=bcs,
+        energy=psi * ufl.dx,
+        petsc_options=dict(opt.split("=") for opt in args.petsc),
+    )
     phases["operator and problem"] = time.perf_counter() - tic
 
     def set_load(t: float) -> None:

@@ -69,6 +69,35 @@ _AMG_OPTIONS = {
     "pc_gamg_threshold": 0.01,
 }
 
+#: An assembled Jacobian counts as symmetric when no entry differs from its transpose's by more
+#: than this fraction of the matrix's infinity norm (rounding leaves about 1e-16); the
+#: problems' default direct solver then factorises it as LDL^T (MUMPS, ``pc_type cholesky``,
+#: symmetric indefinite) instead of LU: 0.64 s against 0.84 s for the press of
+#: benchmarks/bench_factor.py (25k dofs, CPU seconds; docs/solvers.md).
+SYMMETRY_RTOL = 1e-10
+
+
+def choose_factorisation(pc: PETSc.PC, A: PETSc.Mat) -> bool:
+    """Factorise the symmetric ``A`` as LDL^T, any other as LU (MUMPS both; collective).
+
+    Checks ``A`` for symmetry (to SYMMETRY_RTOL), flags it, and sets ``pc``'s type to
+    ``cholesky`` or ``lu`` accordingly (a change of type redoes the symbolic factorisation).
+    Returns whether ``A`` is symmetric.
+    """
+    symmetric = bool(A.isSymmetric(SYMMETRY_RTOL * A.norm(PETSc.NormType.INFINITY)))
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, symmetric)
+    wanted = "cholesky" if symmetric else "lu"
+    if pc.getType() != wanted:
+        pc.setType(wanted)
+        pc.setFactorSolverType("mumps")
+    return symmetric
+
+
+def _is_mumps_direct(pc: PETSc.PC) -> bool:
+    """Whether ``pc`` is a MUMPS factorisation (LU or Cholesky)."""
+    return pc.getType() in ("lu", "cholesky") and pc.getFactorSolverType() == "mumps"
+
+
 #: The energy line search hands over to the residual norm once the residual has fallen by
 #: this factor in a solve, or once an iteration changed it by less than STALL_RTOL (relative);
 #: see ContactProblem._start_iteration.
@@ -390,10 +419,12 @@ class ContactProblem:
             on the residual norm; see ``_start_iteration``), and only once the Dirichlet dofs
             sit on their values (the energy is not a merit function while they move).
         petsc_options_prefix: prefix of this problem's PETSc options.
-        petsc_options: options set under the prefix (defaults: newtonls, bt line search, LU with
-            MUMPS, rtol 1e-10, atol 1e-12, at most 50 iterations). From AMG_MIN_DOFS global
-            dofs on, unless ``ksp_type`` or ``pc_type`` is given, the linear solver is GMRES
-            with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
+        petsc_options: options set under the prefix (defaults: newtonls, bt line search, MUMPS
+            direct solve, rtol 1e-10, atol 1e-12, at most 50 iterations). Unless ``pc_type``
+            is given, MUMPS factorises each Jacobian that is symmetric (every problem with an
+            energy) as LDL^T and any other as LU (``solvers.choose_factorisation``). From
+            AMG_MIN_DOFS global dofs on, unless ``ksp_type`` or ``pc_type`` is given, the
+            linear solver is GMRES with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
             (:func:`~fenics_matdepth.rigid_body_modes`) are set as the matrix's near-nullspace.
 
     Attributes:
@@ -460,6 +491,8 @@ class ContactProblem:
         self.snes.setFromOptions()
         ksp = self.snes.getKSP()
         ksp.setFromOptions()
+        # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
+        self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
         if ksp.getPC().getType() == "gamg":
             self.assembler.set_near_nullspace(rigid_body_modes(u.function_space))
         ksp.setPreSolve(self._ksp_started)
@@ -503,6 +536,9 @@ class ContactProblem:
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
         self.assembler.jacobian(A)
+        if self._choose_factorisation:
+            with self._watch("linear_solve"):
+                choose_factorisation(self.snes.getKSP().getPC(), A)
 
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         if not self._merit_is_energy:
@@ -687,6 +723,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         self.assembler = ContactAssembler(self.L, self.a, u, contact, self.bcs)
         self._watch = self.assembler.watch
         self._solver = None
+        self._choose_factorisation = False  # newton_solver() sets it
         self._trial = u.x.petsc_vec.duplicate()
         #: residual norm at each residual evaluation of the current solve
         self.residual_norms: list[float] = []
@@ -717,7 +754,9 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         """A ``dolfinx.nls.petsc.NewtonSolver`` for this problem, attached, with settings.
 
         Defaults: residual convergence criterion, rtol 1e-10, atol 1e-12, at most 50
-        iterations, no error on non-convergence (``solve`` reports it), LU with MUMPS.
+        iterations, no error on non-convergence (``solve`` reports it), MUMPS: LDL^T while the
+        Jacobian is symmetric, LU otherwise (``solvers.choose_factorisation``; kept while the
+        Krylov solver's PC stays a MUMPS factorisation).
 
         Args:
             settings: NewtonSolver attributes to override (``rtol=``, ``max_it=``, ...).
@@ -739,6 +778,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         ksp.getPC().setType("lu")
         ksp.getPC().setFactorSolverType("mumps")
         self.attach(solver)
+        self._choose_factorisation = True
         return solver
 
     # -- NewtonSolver callbacks -------------------------------------------------------------------
@@ -768,6 +808,11 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
                 "couplings: call problem.attach(solver) (or use problem.newton_solver())"
             )
         self.assembler.jacobian(A)
+        if self._choose_factorisation:
+            pc = self._solver.krylov_solver.getPC()
+            if _is_mumps_direct(pc):  # unless the user changed the solver newton_solver made
+                with self.assembler.watch("linear_solve"):
+                    choose_factorisation(pc, A)
 
     def _update(self, solver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
         """x -= relaxation * dx, the step halved while it would invert an element."""

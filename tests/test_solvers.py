@@ -79,6 +79,38 @@ def test_block_pressed_on_block_converges_quadratically():
     assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
 
 
+def test_symmetric_jacobians_are_factorised_as_ldlt():
+    """The Jacobian of an energy is symmetric: the default direct solver factorises it as
+    LDL^T (MUMPS Cholesky, symmetric indefinite) and reaches LU's solution in as many
+    iterations; a user's ``pc_type`` is kept. A residual that is no energy's derivative (here
+    with a convection-like term) has an unsymmetric Jacobian and is factorised as LU."""
+    comm = MPI.COMM_WORLD
+    runs, mesh = {}, None
+    for name, options in (("default", None), ("lu", {"pc_type": "lu"}), ("convected", None)):
+        mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
+        if name == "convected":
+            drift = ufl.as_vector((0.05, 0.0, 0.0))
+            residual += ufl.inner(ufl.dot(ufl.grad(u), drift), ufl.TestFunction(V)) * ufl.dx
+            energy = None
+        bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+        contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+        problem = ContactProblem(
+            residual, u, contact, bcs=bcs, energy=energy, petsc_options=options
+        )
+        result = problem.solve()
+        assert result.converged
+        _assert_quadratic(result.residual_norms)
+        pc = problem.snes.getKSP().getPC()
+        runs[name] = (pc.getType(), result.iterations, u.x.petsc_vec.copy())
+        symmetric = problem._A.isSymmetric(1e-10 * problem._A.norm(PETSc.NormType.INFINITY))
+        assert symmetric == (name != "convected")
+    assert [runs[name][0] for name in runs] == ["cholesky", "lu", "lu"]
+    assert runs["default"][1] == runs["lu"][1]
+    diff = runs["default"][2].copy()
+    diff.axpy(-1.0, runs["lu"][2])
+    assert diff.norm() <= 1e-9 * runs["lu"][2].norm()
+
+
 def test_convergence_test_stops_a_line_search_without_progress():
     """ContactProblem's convergence test: PETSc's tolerances as SNES holds them, and a stop
     (DIVERGED_LINE_SEARCH) once NO_PROGRESS_ITERATIONS iterations in a row left the residual
@@ -240,6 +272,9 @@ def test_newton_solver_problem_matches_snes():
     fm.solve_load_steps(newton, set_newton, num_steps=2, progress=False)
     a, b = snes.u.x.array, newton.u.x.array
     assert np.abs(a - b).max() <= 1e-8 * np.abs(a).max()
+    # both factorise the symmetric Jacobian as LDL^T
+    assert snes.snes.getKSP().getPC().getType() == "cholesky"
+    assert newton._solver.krylov_solver.getPC().getType() == "cholesky"
 
 
 def test_newton_solver_needs_the_contact_matrix():
