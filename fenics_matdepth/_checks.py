@@ -17,6 +17,7 @@ from mpi4py import MPI
 
 import dolfinx
 import numpy as np
+from numba import njit
 
 from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
 
@@ -87,12 +88,6 @@ def check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
         )
 
 
-def _cell_vertex_coordinates(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
-    """(num local cells, 4, 3) vertex coordinates of the owned and ghost cells."""
-    nodes = np.asarray(geometry_dofmap(mesh)).reshape(-1, 4)
-    return np.asarray(mesh.geometry.x[nodes], dtype=np.float64)
-
-
 def _signed_volumes6(x: np.ndarray) -> np.ndarray:
     """Six times the signed volume of each tetrahedron of ``x`` (n, 4, 3)."""
     e = x[:, 1:] - x[:, :1]
@@ -124,55 +119,88 @@ def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
         )
     collective_error(comm, message)
 
-    x = _cell_vertex_coordinates(mesh)
-    num_owned = mesh.topology.index_map(3).size_local
-    vol6 = _signed_volumes6(x)
-    if x.shape[0]:
-        edges = x[:, [1, 2, 3, 2, 3, 3]] - x[:, [0, 0, 0, 1, 1, 2]]
-        longest = np.linalg.norm(edges, axis=2).max(axis=1)
-        flat = np.abs(vol6[:num_owned]) <= 6.0 * DEGENERATE_VOLUME_RATIO * longest[:num_owned] ** 3
-        if np.any(flat):
-            c = int(np.flatnonzero(flat)[0])
-            message = (
-                f"{int(flat.sum())} tetrahedra have (near) zero volume, e.g. the one with vertices "
-                f"{np.round(x[c], 6).tolist()}: remove the degenerate (flat) tetrahedra, e.g. "
-                "re-mesh with gmsh (Mesh.Optimize) or merge duplicate vertices"
-            )
-    collective_error(comm, message)
-
-    # Folded-over cells: the opposite vertices of two cells sharing a face must lie on
-    # opposite sides of the face's plane.
+    # Flat cells; folded-over cells: the opposite vertices of two cells sharing a face must
+    # lie on opposite sides of the face's plane (one pass in numba, _cell_quality).
     mesh.topology.create_connectivity(2, 3)
     mesh.topology.create_connectivity(3, 2)
     f2c = mesh.topology.connectivity(2, 3)
-    offsets = np.asarray(f2c.offsets)
-    two = np.flatnonzero(np.diff(offsets) == 2)
-    if two.size:
-        cells = np.asarray(f2c.array)[offsets[two][:, None] + np.arange(2)]
-        c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
-        # the reference tetrahedron's facet i is opposite its vertex i
-        opp = np.stack(
-            [np.argmax(c2f[cells[:, k]] == two[:, None], axis=1) for k in (0, 1)], axis=1
+    nodes = np.asarray(geometry_dofmap(mesh), dtype=np.int64).reshape(-1, 4)
+    c2f = np.asarray(mesh.topology.connectivity(3, 2).array, dtype=np.int64).reshape(-1, 4)
+    num_owned = mesh.topology.index_map(3).size_local
+    flat, first_flat, folded, first_folded = _cell_quality(
+        np.asarray(x_all, dtype=np.float64),
+        nodes,
+        c2f,
+        np.asarray(f2c.offsets, dtype=np.int64),
+        np.asarray(f2c.array, dtype=np.int64),
+        num_owned,
+        DEGENERATE_VOLUME_RATIO,
+    )
+    if flat:
+        message = (
+            f"{flat} tetrahedra have (near) zero volume, e.g. the one with vertices "
+            f"{np.round(x_all[nodes[first_flat]], 6).tolist()}: remove the degenerate (flat) "
+            "tetrahedra, e.g. re-mesh with gmsh (Mesh.Optimize) or merge duplicate vertices"
         )
-        xa = x[cells[:, 0]]
-        face = np.take_along_axis(
-            xa, np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[opp[:, 0]][:, :, None], 1
-        )
-        normal = np.cross(face[:, 1] - face[:, 0], face[:, 2] - face[:, 0])
-        pa = xa[np.arange(two.size), opp[:, 0]]
-        pb = x[cells[:, 1], opp[:, 1]]
-        sa = np.einsum("ij,ij->i", pa - face[:, 0], normal)
-        sb = np.einsum("ij,ij->i", pb - face[:, 0], normal)
-        folded = sa * sb > 0.0
-        if np.any(folded):
-            c = int(cells[np.flatnonzero(folded)[0], 0])
-            message = (
-                f"{int(folded.sum())} interior faces have both their tetrahedra on the same "
-                f"side (an inverted, folded-over element), e.g. at the tetrahedron with vertices "
-                f"{np.round(x[c], 6).tolist()}: the mesh is tangled; re-mesh, or fix the vertex "
-                "that was moved through the opposite face"
-            )
     collective_error(comm, message)
+    if folded:
+        message = (
+            f"{folded} interior faces have both their tetrahedra on the same side (an "
+            f"inverted, folded-over element), e.g. at the tetrahedron with vertices "
+            f"{np.round(x_all[nodes[first_folded]], 6).tolist()}: the mesh is tangled; "
+            "re-mesh, or fix the vertex that was moved through the opposite face"
+        )
+    collective_error(comm, message)
+
+
+@njit(cache=True)
+def _cell_quality(x, nodes, c2f, f2c_offsets, f2c, num_owned, ratio):
+    """(number of flat owned cells, the first, number of folded-over faces, a cell of the
+    first) over the local cells: a cell is flat when 6 |volume| <= 6 ratio (longest edge)^3; a
+    face shared by two local cells is folded over when their vertices opposite it lie on the
+    same side of its plane (the reference tetrahedron's facet i is opposite its vertex i)."""
+    num_flat, first_flat, num_folded, first_folded = 0, -1, 0, -1
+    e = np.empty((6, 3))
+    pairs = ((1, 0), (2, 0), (3, 0), (2, 1), (3, 1), (3, 2))
+    for c in range(num_owned):
+        for k in range(6):
+            a, b = pairs[k]
+            for d in range(3):
+                e[k, d] = x[nodes[c, a], d] - x[nodes[c, b], d]
+        vol6 = (
+            e[0, 0] * (e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1])
+            - e[0, 1] * (e[1, 0] * e[2, 2] - e[1, 2] * e[2, 0])
+            + e[0, 2] * (e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0])
+        )
+        longest2 = 0.0
+        for k in range(6):
+            longest2 = max(longest2, e[k, 0] ** 2 + e[k, 1] ** 2 + e[k, 2] ** 2)
+        if abs(vol6) <= 6.0 * ratio * longest2**1.5:
+            if num_flat == 0:
+                first_flat = c
+            num_flat += 1
+    for c in range(c2f.shape[0]):
+        for i in range(4):
+            f = c2f[c, i]
+            if f2c_offsets[f + 1] - f2c_offsets[f] != 2 or f2c[f2c_offsets[f]] != c:
+                continue  # an exterior face, or the pair is tested from its first cell
+            other = f2c[f2c_offsets[f] + 1]
+            j = 0
+            while c2f[other, j] != f:
+                j += 1
+            # the face's vertices: those of c other than i
+            q0, q1, q2 = nodes[c, (i + 1) % 4], nodes[c, (i + 2) % 4], nodes[c, (i + 3) % 4]
+            ux, uy, uz = x[q1, 0] - x[q0, 0], x[q1, 1] - x[q0, 1], x[q1, 2] - x[q0, 2]
+            wx, wy, wz = x[q2, 0] - x[q0, 0], x[q2, 1] - x[q0, 1], x[q2, 2] - x[q0, 2]
+            nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+            a, b = nodes[c, i], nodes[other, j]
+            sa = (x[a, 0] - x[q0, 0]) * nx + (x[a, 1] - x[q0, 1]) * ny + (x[a, 2] - x[q0, 2]) * nz
+            sb = (x[b, 0] - x[q0, 0]) * nx + (x[b, 1] - x[q0, 1]) * ny + (x[b, 2] - x[q0, 2]) * nz
+            if sa * sb > 0.0:
+                if num_folded == 0:
+                    first_folded = c
+                num_folded += 1
+    return num_flat, first_flat, num_folded, first_folded
 
 
 def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
