@@ -93,6 +93,16 @@ def choose_factorisation(pc: PETSc.PC, A: PETSc.Mat) -> bool:
     return symmetric
 
 
+#: SNES's reason when a linear solve (or the factorisation) failed
+LINEAR_SOLVE_FAILED = PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
+
+#: MUMPS's working space for LDL^T: this percentage above its analysis' estimate (ICNTL(14),
+#: MUMPS's default 20): with pivoting near a singular Jacobian (a body held only by contact)
+#: the 20 % ran out (INFOG(1) = -9) on 2 ranks in several runs of the floating cube of
+#: test_augmented.py, 100 % in none of 12. A failed LDL^T factorisation is retried with LU.
+LDLT_WORKSPACE_PERCENT = 100
+
+
 def _is_mumps_direct(pc: PETSc.PC) -> bool:
     """Whether ``pc`` is a MUMPS factorisation (LU or Cholesky)."""
     return pc.getType() in ("lu", "cholesky") and pc.getFactorSolverType() == "mumps"
@@ -476,6 +486,8 @@ class ContactProblem:
         if num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user):
             options.update(_AMG_OPTIONS)
             del options["pc_factor_mat_solver_type"]
+        elif "pc_type" not in user:  # LDL^T or LU, chosen per Jacobian (choose_factorisation)
+            options["mat_mumps_icntl_14"] = LDLT_WORKSPACE_PERCENT
         opts = PETSc.Options()
         opts.prefixPush(self.prefix)
         for key, value in {**options, **user}.items():
@@ -648,14 +660,29 @@ class ContactProblem:
             raise_on_failure: raise ``RuntimeError`` (with the residual history) when SNES does
                 not converge; otherwise return the result with ``converged=False``.
         """
-        self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
-        self._merit_is_energy, self._last_norm = True, np.inf
-        self._energy_merit_allowed, self._bcs_met = True, False
-        self.assembler.rejected_states = 0
-        self._trial_valid = False  # the load may have changed since
-        self.u.x.petsc_vec.copy(self._x)
-        self.snes.setConvergenceHistory(reset=True)
-        self.snes.solve(None, self._x)
+        start = self.u.x.petsc_vec.copy()
+        try:
+            while True:
+                self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
+                self._merit_is_energy, self._last_norm = True, np.inf
+                self._energy_merit_allowed, self._bcs_met = True, False
+                self.assembler.rejected_states = 0
+                self._trial_valid = False  # the load may have changed since
+                start.copy(self._x)
+                self.snes.setConvergenceHistory(reset=True)
+                self.snes.solve(None, self._x)
+                pc = self.snes.getKSP().getPC()
+                failed = self.snes.getConvergedReason() == LINEAR_SOLVE_FAILED
+                if not (failed and self._choose_factorisation and pc.getType() == "cholesky"):
+                    break
+                # MUMPS could not complete the LDL^T factorisation (seen: its workspace
+                # estimate too small, INFOG(1) = -9, for a Jacobian near singular): LU from now
+                # on, and the solve again from its start
+                self._choose_factorisation = False
+                pc.setType("lu")
+                pc.setFactorSolverType("mumps")
+        finally:
+            start.destroy()
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
         history = np.asarray(self.snes.getConvergenceHistory()[0], dtype=float)
@@ -723,7 +750,6 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         self.assembler = ContactAssembler(self.L, self.a, u, contact, self.bcs)
         self._watch = self.assembler.watch
         self._solver = None
-        self._choose_factorisation = False  # newton_solver() sets it
         self._trial = u.x.petsc_vec.duplicate()
         #: residual norm at each residual evaluation of the current solve
         self.residual_norms: list[float] = []
@@ -754,9 +780,9 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         """A ``dolfinx.nls.petsc.NewtonSolver`` for this problem, attached, with settings.
 
         Defaults: residual convergence criterion, rtol 1e-10, atol 1e-12, at most 50
-        iterations, no error on non-convergence (``solve`` reports it), MUMPS: LDL^T while the
-        Jacobian is symmetric, LU otherwise (``solvers.choose_factorisation``; kept while the
-        Krylov solver's PC stays a MUMPS factorisation).
+        iterations, no error on non-convergence (``solve`` reports it), LU with MUMPS (not the
+        LDL^T that :class:`ContactProblem` picks for symmetric Jacobians: the NewtonSolver
+        cannot retry a solve whose LDL^T factorisation failed).
 
         Args:
             settings: NewtonSolver attributes to override (``rtol=``, ``max_it=``, ...).
@@ -778,7 +804,6 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         ksp.getPC().setType("lu")
         ksp.getPC().setFactorSolverType("mumps")
         self.attach(solver)
-        self._choose_factorisation = True
         return solver
 
     # -- NewtonSolver callbacks -------------------------------------------------------------------
@@ -808,11 +833,6 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
                 "couplings: call problem.attach(solver) (or use problem.newton_solver())"
             )
         self.assembler.jacobian(A)
-        if self._choose_factorisation:
-            pc = self._solver.krylov_solver.getPC()
-            if _is_mumps_direct(pc):  # unless the user changed the solver newton_solver made
-                with self.assembler.watch("linear_solve"):
-                    choose_factorisation(pc, A)
 
     def _update(self, solver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
         """x -= relaxation * dx, the step halved while it would invert an element."""

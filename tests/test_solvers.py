@@ -17,6 +17,7 @@ import ufl
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
+from fenics_matdepth import solvers
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.solvers import ContactProblem, NonlinearContactProblem, SolveResult
 
@@ -111,11 +112,51 @@ def test_symmetric_jacobians_are_factorised_as_ldlt():
     assert diff.norm() <= 1e-9 * runs["lu"][2].norm()
 
 
+def test_failed_ldlt_factorisation_is_retried_with_lu():
+    """When MUMPS cannot complete the LDL^T factorisation (here: its working memory capped at
+    1 MB, ICNTL(23)), the solve is repeated once from its start with LU, which the problem
+    keeps from then on (here LU fails as well, so the result is the linear solver's failure)."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(
+        residual,
+        u,
+        contact,
+        bcs=bcs,
+        energy=energy,
+        petsc_options_prefix="ldlt_fallback_",  # PETSc keeps options: not the default prefix
+        petsc_options={"mat_mumps_icntl_23": 1},
+    )
+    start = u.x.array.copy()
+    solved_with = []
+
+    class CountingSNES:
+        def __init__(self, snes):
+            self._snes = snes
+
+        def __getattr__(self, name):
+            return getattr(self._snes, name)
+
+        def solve(self, *args):
+            self._snes.solve(*args)
+            solved_with.append(self._snes.getKSP().getPC().getType())
+
+    problem.snes = CountingSNES(problem.snes)
+    result = problem.solve(raise_on_failure=False)
+    assert solved_with == ["cholesky", "lu"]
+    assert not result.converged and result.reason == solvers.LINEAR_SOLVE_FAILED
+    assert np.array_equal(u.x.array, start)  # no Newton step was taken
+    problem.solve(raise_on_failure=False)
+    assert solved_with == ["cholesky", "lu", "lu"]  # LU from then on
+
+
 def test_convergence_test_stops_a_line_search_without_progress():
     """ContactProblem's convergence test: PETSc's tolerances as SNES holds them, and a stop
     (DIVERGED_LINE_SEARCH) once NO_PROGRESS_ITERATIONS iterations in a row left the residual
     norm unchanged, instead of running on to the iteration limit."""
-    from fenics_matdepth import solvers
+
     from fenics_matdepth.solvers import NO_PROGRESS_ITERATIONS
 
     comm = MPI.COMM_WORLD
@@ -146,7 +187,6 @@ def test_amg_default_above_the_size_threshold(monkeypatch):
     """Above AMG_MIN_DOFS the default linear solver is GMRES + GAMG with the rigid-body
     near-nullspace on the matrix; the contact solve reaches the LU solution. A user's own
     ``pc_type`` keeps its choice."""
-    from fenics_matdepth import solvers
 
     comm = MPI.COMM_WORLD
     solutions = {}
@@ -272,9 +312,7 @@ def test_newton_solver_problem_matches_snes():
     fm.solve_load_steps(newton, set_newton, num_steps=2, progress=False)
     a, b = snes.u.x.array, newton.u.x.array
     assert np.abs(a - b).max() <= 1e-8 * np.abs(a).max()
-    # both factorise the symmetric Jacobian as LDL^T
-    assert snes.snes.getKSP().getPC().getType() == "cholesky"
-    assert newton._solver.krylov_solver.getPC().getType() == "cholesky"
+    assert snes.snes.getKSP().getPC().getType() == "cholesky"  # symmetric: LDL^T
 
 
 def test_newton_solver_needs_the_contact_matrix():
