@@ -47,11 +47,17 @@
 # `MATDEPTH_KNEE_RESOLUTION` (`coarse`, `default`, `fine` or a number), `MATDEPTH_KNEE_DEGREES`
 # and `MATDEPTH_KNEE_STEPS` override the resolution, the total flexion and the number of steps,
 # `MATDEPTH_KNEE_PREDICTOR=0` turns the step predictor off (below),
-# `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50);
+# `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50),
+# `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 50),
+# `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
+# `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
+# boundary's median edge (default 0.1; 0 turns it off: plain penalty),
+# `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's;
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
-# same resolution, flexion and number of steps.
+# same resolution, flexion and number of steps (and the augmented Lagrangian's nodal
+# pressures, saved next to it in `knee_pressure.npz`).
 
 # +
 from __future__ import annotations
@@ -74,6 +80,7 @@ from dolfinx.mesh import entities_to_geometry
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import interpolation_points
+from fenics_matdepth.contact.kernels import _area_pairs_max_depth
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
@@ -89,6 +96,9 @@ total_degrees = float(os.environ.get("MATDEPTH_KNEE_DEGREES", 6.0 if quick else 
 num_steps = int(os.environ.get("MATDEPTH_KNEE_STEPS", 2 if quick else 50))
 use_predictor = os.environ.get("MATDEPTH_KNEE_PREDICTOR", "1") not in ("", "0")
 bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
+max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 50))
+al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
+al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -329,7 +339,7 @@ def set_flexion(t: float) -> None:
 # less. Skin on skin (pressures of kPa) then penetrates micrometres.
 
 # +
-penalty = 2.0  # MPa/mm
+penalty = float(os.environ.get("MATDEPTH_KNEE_PENALTY", 2.0))  # MPa/mm
 contact = fm.ContactOperator(u, depth, penalty)
 problem = fm.ContactProblem(
     residual,
@@ -338,8 +348,29 @@ problem = fm.ContactProblem(
     bcs=bcs,
     energy=energy,
     petsc_options_prefix="knee_",
-    petsc_options={"snes_max_it": 30},
+    petsc_options={"snes_max_it": max_newton},
 )
+# -
+
+# ### The augmented Lagrangian
+#
+# Bone on bone the penalty is too soft: from about 33° the patella bears on the femur's
+# trochlea with a force that grows past 250 N, which $\varepsilon = 2$ MPa/mm carried only with
+# an overlap of a third of an element (measured: 0.33 h at 73°). A penalty a hundred times
+# larger would make Newton's matrix correspondingly worse conditioned. Instead
+# {py:class}`fenics_matdepth.AugmentedLagrangian` keeps the penalty and adds nodal contact
+# pressures, raised by Uzawa updates after each converged Newton solve until the deepest point
+# of every contact surface is within `al_tol_h` (a tenth) of the boundary's median edge. Its
+# solve replaces the problem's in `solve_load_steps`; a step that fails restores the pressures
+# it started from, and the pressures carry over from one step to the next.
+
+# +
+h_boundary = stats["median_edge"]
+solver = problem
+augmented = None
+if al_tol_h > 0.0:
+    augmented = fm.AugmentedLagrangian(problem, tol_h=al_tol_h, h=h_boundary)
+    solver = augmented
 # -
 
 # ### What is measured at each step
@@ -387,7 +418,6 @@ is_patella[np.concatenate(comm.allgather(global_ids[patella_blocks]))] = True
 is_fold = np.zeros(imap.size_global, dtype=bool)
 is_fold[np.concatenate(comm.allgather(global_ids[fold_blocks]))] = True
 patella_X = np.concatenate(comm.allgather(X[patella_blocks]))
-h_boundary = stats["median_edge"]
 
 
 def patella_motion() -> tuple[np.ndarray, np.ndarray, float]:
@@ -405,6 +435,48 @@ def patella_motion() -> tuple[np.ndarray, np.ndarray, float]:
     if R[2, 1] - R[1, 2] > 0.0:
         angle = -angle
     return c1 - c0, c1, float(angle)
+
+
+# each vertex's body for the deepest contact's report: a bone where a bone's cells touch it
+vertex_body = np.zeros(imap.size_local + imap.num_ghosts, dtype=np.int32)
+for tag in sorted(leg.BODIES, key=lambda b: b in (leg.FEMUR, leg.TIBIA, leg.PATELLA)):
+    vertex_body[np.unique(V.dofmap.list[cell_tags.find(tag)].ravel())] = tag
+body_of_global = np.zeros(imap.size_global, dtype=np.int32)
+all_ids = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
+body_of_global[all_ids] = vertex_body
+comm.Allreduce(MPI.IN_PLACE, body_of_global, op=MPI.MAX)
+
+
+def deepest_contact() -> dict:
+    """The contact pair reaching deepest (collective): its depth, the penetrating triangle's
+    and the penetrated tetrahedron's bodies (by their vertices, bones first) and reference
+    centroids (mm), and the triangle's mean edge length, the local element size (mm)."""
+    s, area = contact.surface, contact._evaluate(False, False)
+    pair_a = contact._pair_a[area["active"]]
+    pair_k = contact._pair_k[area["active"]]
+    g = _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
+    best = (0.0, {})
+    if g.size and g.max() > 0.0:
+        p = int(np.argmax(g))
+        tri, tet = s.tri[pair_a[p]], s.tets[pair_k[p], :4]
+        edges = s.X[tri[[1, 2, 0]]] - s.X[tri]
+
+        def body(vertices):
+            tags = body_of_global[s.global_vertex[vertices]]
+            return leg.BODIES[int(np.bincount(tags).argmax())]
+
+        best = (
+            float(g[p]),
+            {
+                "depth": float(g[p]),
+                "triangle_body": body(tri),
+                "triangle_at": np.round(s.X[tri].mean(axis=0), 1).tolist(),
+                "tetrahedron_body": body(tet),
+                "tetrahedron_at": np.round(s.X[tet].mean(axis=0), 1).tolist(),
+                "local_h": float(np.linalg.norm(edges, axis=1).mean()),
+            },
+        )
+    return max(comm.allgather(best), key=lambda b: b[0])[1]
 
 
 def measure(t: float) -> dict:
@@ -435,11 +507,13 @@ def measure(t: float) -> dict:
     fold_contacts = len(set(np.concatenate(comm.allgather(touched)).tolist()))
     shift, centroid, rotation = patella_motion()
     diag = contact.diagnostics()
+    deepest = deepest_contact()
     return {
         "degrees": float(np.degrees(t * total_angle)),
         "active_pairs": int(diag["active_pairs"]),
         "max_penetration": float(diag["max_penetration"]),
         "penetration_over_h": float(diag["max_penetration"] / h_boundary),
+        "deepest_contact": deepest,
         "min_det_F": min_det,
         "min_det_F_body": leg.BODIES.get(worst_body, "?"),
         "min_det_F_at": worst_at,
@@ -522,6 +596,33 @@ def add_frame(grid) -> None:
 
 # +
 checkpoint = output / "knee_checkpoint.npz"
+pressure_checkpoint = fm.Checkpoint(output / "knee_pressure.npz", V)
+local_ids = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
+
+
+def save_pressure(t: float) -> None:
+    """The augmented Lagrangian's nodal pressures (global numbering) as the first component of
+    a P1 vector field, which `fm.Checkpoint` keys by vertex (any number of ranks reads it)."""
+    field = np.zeros((local_ids.size, 3))
+    field[:, 0] = augmented.pressure[local_ids]
+    pressure_checkpoint.save({"pressure": field.ravel()}, load=t)
+
+
+def load_pressure(t: float) -> None:
+    arrays, meta = pressure_checkpoint.load()
+    if abs(meta["load"] - t) > 1e-12:
+        raise RuntimeError(
+            f"{pressure_checkpoint.path} holds the pressures at load {meta['load']}, the "
+            f"checkpoint is at {t}: the run stopped between the two writes; restart from 0"
+        )
+    owned = arrays["pressure"].reshape(-1, 3)[:n_owned, 0]
+    pressure = np.zeros(imap.size_global)
+    pressure[global_ids] = owned
+    comm.Allreduce(MPI.IN_PLACE, pressure, op=MPI.SUM)  # each vertex is owned once
+    augmented.pressure = pressure
+    contact.set_pressure(pressure)
+
+
 steps_file = output / "knee_steps.json"
 per_step: list[dict] = []
 frames_angles: list[float] = []
@@ -531,6 +632,8 @@ if resume:
     # the predictor starts from the saved state: set_flexion at the saved angle returns it
     last["u"], last["angle"] = arrays["u"], meta["load"] * total_angle
     u.x.array[:] = arrays["u"]
+    if augmented is not None:
+        load_pressure(meta["load"])
     per_step = json.loads(steps_file.read_text()) if comm.rank == 0 else None
     per_step = [m for m in comm.bcast(per_step, root=0) if m["load"] <= meta["load"] + 1e-12]
     attempts["count"] = -1  # solve_load_steps sets the saved load once before the first step
@@ -547,10 +650,50 @@ vtx = io.VTXWriter(comm, output / vtx_name, [u, depth])
 vtx.write(start_degrees)
 
 
+def largest_residual(count: int = 5) -> list:
+    """The vertices with the largest residual of the last Newton iterate: (norm of the
+    vertex's residual, body, reference position), gathered over the ranks (collective)."""
+    r = problem.snes.getFunction()[0].array_r.reshape(-1, 3)[:n_owned]
+    norms = np.linalg.norm(r, axis=1)
+    top = np.argsort(norms)[::-1][:count]
+    local = [
+        (float(norms[v]), leg.BODIES[int(vertex_body[v])], np.round(X[v], 1).tolist()) for v in top
+    ]
+    merged = [c for part in comm.allgather(local) for c in part]
+    return sorted(merged, key=lambda c: -c[0])[:count]
+
+
+class ReportFailures:
+    """The solver, reporting each failed attempt (why; the augmented Lagrangian's inner solves)
+    before `solve_load_steps` cuts the step."""
+
+    def __init__(self, inner):
+        self.inner, self.u, self.contact = inner, inner.u, inner.contact
+
+    def solve(self, raise_on_failure: bool = True):
+        result = self.inner.solve(raise_on_failure=False)
+        if not result.converged:
+            why = result.failure_message()
+            if augmented is not None:
+                why = augmented.failure_message(result)
+                why += "; inner solves (Newton its, overlap/h): " + ", ".join(
+                    f"({r.newton_iterations}, {r.overlap_h:.3f})" for r in augmented.history
+                )
+            report(f"    the step to {np.degrees(last['try']):.2f} deg failed: {why[:600]}")
+            report(f"    where the residual is largest: {largest_residual()}")
+            if raise_on_failure:
+                raise RuntimeError(why)
+        return result
+
+
 def counting_set_flexion(t: float) -> None:
     if (output / "knee_stop").exists():
         raise fm.StopRequested(f"{output}/knee_stop exists")
     attempts["count"] += 1
+    last["try"] = t * total_angle
+    if augmented is not None and al_reset:
+        augmented.pressure = np.zeros_like(augmented.pressure)
+        contact.set_pressure(augmented.pressure)
     set_flexion(t)
 
 
@@ -561,6 +704,12 @@ def after_step(t: float) -> None:
     m = measure(t)
     m["load"] = t
     m["newton_iterations"] = int(problem.snes.getIterationNumber())
+    if augmented is not None:
+        al = augmented.diagnostics()
+        m["newton_iterations"] = int(al["newton_iterations"])
+        m["pressure_updates"] = int(al["updates"])
+        m["max_pressure"] = float(al["max_pressure"])
+        save_pressure(t)
     m["cuts"] = attempts["count"] - 1
     m["seconds"] = time.perf_counter() - attempts["tic"]
     attempts["count"], attempts["tic"] = 0, time.perf_counter()
@@ -582,18 +731,25 @@ def after_step(t: float) -> None:
         f"turned {m['patella_rotation_degrees']:+.1f} deg, patella contact force "
         f"({fx:+.1f}, {fy:+.1f}, {fz:+.1f}) N, fold skin vertices in contact "
         f"{m['fold_skin_vertices_in_contact']}"
+        + (
+            f", {m['pressure_updates']} pressure updates, max pressure {m['max_pressure']:.3f} MPa"
+            if augmented is not None
+            else ""
+        )
+        + f"; deepest {m['deepest_contact']}"
     )
 
 
 report(
     f"flexion to {total_degrees:g} deg in {num_steps} steps; penalty {penalty} MPa/mm; "
+    f"augmented Lagrangian to {al_tol_h:g} h ({'off' if augmented is None else 'on'}); "
     f"{comm.size} process(es)"
 )
 tic = time.perf_counter()
 failure = None
 try:
     fm.solve_load_steps(
-        problem,
+        ReportFailures(solver),
         counting_set_flexion,
         num_steps,
         writer=after_step,
@@ -726,6 +882,8 @@ summary = {
     "processes": comm.size,
     "mesh": stats,
     "penalty": penalty,
+    "augmented_tol_h": al_tol_h,
+    "max_newton_iterations": max_newton,
     "target_degrees": total_degrees,
     "num_steps": num_steps,
     "reached_degrees": reached,

@@ -142,7 +142,8 @@ def _knee_claims(output: Path) -> None:
     """The reduced knee (coarse leg, the first few degrees of flexion): every step converged,
     the contact surfaces penetrate less than a tenth of the boundary element size, no element
     is inverted, the patella is pulled distally by the ligament (nothing prescribes it), and
-    the last step is in the checkpoint a resumed run starts from."""
+    the last step is in the checkpoint a resumed run starts from (with the augmented
+    Lagrangian's nodal pressures, when it is on)."""
     summary = json.loads((output / "knee.json").read_text())
     assert summary["completed"], summary["failure"]
     steps = summary["steps"]
@@ -165,6 +166,15 @@ def _knee_claims(output: Path) -> None:
         assert meta["steps"] == len(steps) and meta["load"] == pytest.approx(1.0), meta
         assert np.isfinite(checkpoint["field/u"]).all()
     assert len(json.loads((output / "knee_steps.json").read_text())) == len(steps)
+    if summary["augmented_tol_h"] > 0.0:
+        # the augmented Lagrangian's nodal pressures are saved with the step, for --resume
+        with np.load(output / "knee_pressure.npz") as saved:
+            meta = json.loads(str(saved["meta"]))
+            assert meta["load"] == pytest.approx(1.0), meta
+            pressure = saved["field/pressure"]
+            assert np.isfinite(pressure).all() and (pressure >= 0.0).all()
+        for step in steps:
+            assert step["penetration_over_h"] <= summary["augmented_tol_h"], step
     for picture in ("knee_skin.png", "knee_cutaway.png", "knee_flexion.gif"):
         assert (output / picture).stat().st_size > 0
 
