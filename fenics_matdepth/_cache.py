@@ -1,8 +1,9 @@
 """numba's on-disk cache, invalidated by any change to the package's sources.
 
 numba keys a cached kernel on the source file that defines it (modification time and size)
-only. Our kernels inline functions from other modules (``contact/kernels.py`` inlines the
-clipper of ``geometry/clip.py``, and reads its constants at compile time), so after an edit of
+only. Our kernels compile functions of other modules into their machine code
+(``contact/kernels.py`` calls the clipper of ``geometry/clip.py``, and reads its constants at
+compile time; ``bvh.py`` inlines ``distance.py``'s helpers), so after an edit of
 ``clip.py`` numba would load the old machine code of every kernel that uses it, silently. To
 prevent that, :func:`install` wraps numba's cache locators so that, for functions defined in
 this package, the stamp also holds a hash of all the package's ``.py`` sources: any edit of any

@@ -85,7 +85,7 @@ def _area_work():
     )
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _line(lam, label, r):
     """Component r of the homogeneous coefficient vector of line ``label`` (0..6)."""
     if label < 3:
@@ -93,7 +93,7 @@ def _line(lam, label, r):
     return lam[r, label - 3]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _line_sum_cross(lam, la, lb):
     """``s = sum(c_a x c_b)`` (the homogeneous weight of the vertex on lines la, lb)."""
     ca0 = _line(lam, la, 0)
@@ -105,7 +105,7 @@ def _line_sum_cross(lam, la, lb):
     return (ca1 * cb2 - ca2 * cb1) + (ca2 * cb0 - ca0 * cb2) + (ca0 * cb1 - ca1 * cb0)
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _vertex_gradient(lam, mu_k, la, lb, w, gphi):
     """``gphi += (d mu / d Lam)^T w`` for the vertex on lines la, lb.
 
@@ -137,7 +137,7 @@ def _vertex_gradient(lam, mu_k, la, lb, w, gphi):
         gphi[8 + lb - 3] += v0 * ca1 - v1 * ca0
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _vertex_jacobian(lam, mu_k, la, lb, jac, idx):
     """Live columns of ``d mu / d Lam`` for the vertex on lines la, lb.
 
@@ -166,7 +166,7 @@ def _vertex_jacobian(lam, mu_k, la, lb, jac, idx):
     return s, nc
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _dm_column(lam, la, lb, col):
     """Column ``col`` (0..5) of d m / d (c_a, c_b), m = c_a x c_b: e_i x c_b or c_a x e_i."""
     if col < 3:
@@ -190,7 +190,7 @@ def _dm_column(lam, la, lb, col):
     return c1, -c0, 0.0
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
     """``hphi += sum_r w_r d2 mu_r / d Lam2`` for the vertex on lines la, lb."""
     if (la < 3 and lb < 3) or not np.isfinite(s):
@@ -286,7 +286,7 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
                     hphi[4 * i + j, 4 * i2 + j2] += bg * dt[j] * dt[j2]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _clip_shift_jacobian(xs, a2, xq, ds):
     """``ds[a, 3 m + b] = d s_a / d x_mb`` of the clip shift s (`_clip_shift`) by central
     differences with a step of 1e-5 sqrt(2 A): s is of size CLIP_SHIFT h, so the differences'
@@ -308,7 +308,7 @@ def _clip_shift_jacobian(xs, a2, xq, ds):
             ds[2, 3 * m + b] = (pz - mz) / (2.0 * eta)
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _shift_rows(g, ds):
     """``g[:9] <- T^T g[:9]``, ``T = I + [ds; ds; ds]`` (every corner moves by the same s)."""
     g0 = g[0] + g[3] + g[6]
@@ -318,7 +318,7 @@ def _shift_rows(g, ds):
         g[c] += g0 * ds[0, c] + g1 * ds[1, c] + g2 * ds[2, c]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _shift_hessian(hess, p, ds, tmp):
     """``hess[p] <- P^T hess[p] P`` with P = T on the 9 triangle coordinates, I elsewhere."""
     for r in range(21):  # columns: H P
@@ -341,7 +341,8 @@ def _shift_hessian(hess, p, ds, tmp):
 
 # A function of its own, called from the pair loops, not inlined there (inline="always"):
 # numba's IR inlining of this large kernel made the first run's compilation about three
-# times longer, for no measurable gain in speed (docs/solvers.md, start-up).
+# times longer, for no measurable gain in speed (docs/solvers.md, start-up). The same holds
+# for every helper of this module and of geometry/clip.py: none is IR-inlined any more.
 @njit(cache=True)
 def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hess, p):
     """Area-integration energy of one (triangle, tetrahedron) pair.
@@ -683,7 +684,7 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     return energy
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _is_split(tet, k):
     """Whether tetrahedron k is evaluated as four sub-tetrahedra around its centroid: a fifth
     column of ``tet``, when present, holds the index in ``depth`` of the centroid's depth
@@ -691,7 +692,7 @@ def _is_split(tet, k):
     return tet.shape[1] > 4 and tet[k, 4] >= 0
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _gather_tet(x, depth, tet, k, s, split, xt, dt):
     """Vertices ``xt`` (4, 3) and depths ``dt`` (4,) of tetrahedron k, or, when ``split``, of
     its sub-tetrahedron s: vertex s replaced by the centroid (the mean of the four current
@@ -709,7 +710,7 @@ def _gather_tet(x, depth, tet, k, s, split, xt, dt):
         dt[s] = depth[tet[k, 4]]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _fold_centroid(grad, hess, row, off, n, s, want_grad, want_hess, acc_g, acc_h):
     """Map sub-tetrahedron s's derivatives (row ``row`` of grad and hess, changed in place) to
     the parent tetrahedron's vertices and add them to ``acc_g`` (n,) and ``acc_h`` (n, n).
@@ -746,7 +747,7 @@ def _fold_centroid(grad, hess, row, off, n, s, want_grad, want_hess, acc_g, acc_
                 acc_h[i, c] += hess[row, i, c]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _store_folded(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
     """Write the accumulated parent-tetrahedron derivatives into row ``row``."""
     if want_grad:
@@ -758,7 +759,7 @@ def _store_folded(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
                 hess[row, i, c] = acc_h[i, c]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _zero_folded(n, want_grad, want_hess, acc_g, acc_h):
     if want_grad:
         for c in range(n):
@@ -973,7 +974,7 @@ def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_gra
 # ------------------------------------------------------------------------------------------
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _scale_row(grad, hess, row, n, factor, want_grad, want_hess):
     """Multiply row ``row`` of grad (n,) and hess (n, n) by ``factor`` in place."""
     if want_grad:
@@ -985,7 +986,7 @@ def _scale_row(grad, hess, row, n, factor, want_grad, want_hess):
                 hess[row, r, c] *= factor
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _add_row(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
     """``acc += row`` of grad and hess."""
     if want_grad:
@@ -1089,7 +1090,7 @@ def _area_pairs_augmented_active(
     return active, energy, grad, hess
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _polygon_work():
     """Buffers of `_sub_polygon`: xs (3, 3), xt (4, 3), dt (4,), grads (4, 3), lam (3, 4),
     mu, vlab, elab (the clipped polygon, as `_clip` fills them) and gi (3,)."""
@@ -1106,7 +1107,7 @@ def _polygon_work():
     )
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _gather_triangle(x, tri, t, xs):
     """Vertices of triangle t into xs (3, 3); returns twice its area."""
     for a in range(3):
@@ -1115,7 +1116,7 @@ def _gather_triangle(x, tri, t, xs):
     return _triangle_area2(xs)
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _sub_polygon(x, depth, tet, k, s, split, work):
     """Clip the triangle in ``work[0]`` against tetrahedron k (sub-tetrahedron s when split):
     the polygon in ``work[5]`` (parameter coordinates on the triangle, as `_clip` gives them)

@@ -87,7 +87,7 @@ SHIFT_TANGENT = (0.3183098861837907, 0.4472135954999579)
 MAX_POLYGON_VERTICES = 8
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _tet_gradients(x_tet, grads):
     """Barycentric gradients of a tetrahedron.
 
@@ -142,7 +142,7 @@ def _tet_gradients(x_tet, grads):
     return det
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _edges_and_normal(x_tri):
     """Edges ``a = x1 - x0``, ``b = x2 - x0`` and normal ``n = a x b`` of a triangle, as a
     9-tuple (ax, ay, az, bx, by, bz, nx, ny, nz)."""
@@ -155,7 +155,7 @@ def _edges_and_normal(x_tri):
     return ax, ay, az, bx, by, bz, ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _clip_shift(x_tri):
     """The clip shift of a triangle, as a 3-tuple (zeros for a zero-area triangle):
     ``CLIP_SHIFT / sqrt(|n|) * (n + SHIFT_TANGENT[0] |n| t_1 + SHIFT_TANGENT[1] |n| t_2)``,
@@ -177,7 +177,7 @@ def _clip_shift(x_tri):
     )
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _triangle_rows(x_tri, x_tet, grads, lam):
     """``lam[i, j] = lambda_j(x_tri[i] + shift)`` for the 3 triangle corners, moved by the
     consistent clip shift (CLIP_SHIFT) along the triangle's normal."""
@@ -194,7 +194,7 @@ def _triangle_rows(x_tri, x_tet, grads, lam):
         lam[i, 0] = 1.0 - s
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _snap(lam):
     """Set barycentric values within rounding noise of zero (CLIP_TOL) to exactly zero."""
     for i in range(3):
@@ -204,7 +204,7 @@ def _snap(lam):
                 lam[i, j] = 0.0
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _clip(lam, mu, vlab, elab):
     """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
 
@@ -298,7 +298,7 @@ def _clip(lam, mu, vlab, elab):
     return n
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _clip_nonempty(lam, buf):
     """Whether `_clip` would return a polygon (n >= 3), without building it.
 
@@ -338,7 +338,7 @@ def _clip_nonempty(lam, buf):
     return True
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _polygon_area_ratio(mu, n):
     """Area of polygon ``mu[0, :n]`` divided by the area of the parameter simplex."""
     # shoelace in (mu_1, mu_2); the simplex has area 1/2 there
@@ -349,7 +349,7 @@ def _polygon_area_ratio(mu, n):
     return s
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _triangle_area2(x_tri):
     """Twice the triangle area (length^2), 0.0 below TRI_AREA_RTOL."""
     ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(x_tri)
@@ -427,7 +427,7 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     return count
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _axis_gap(xs, xt, nx, ny, nz):
     """Gap between the projections of triangle ``xs`` and tetrahedron ``xt`` on the axis n
     (length times |n|; negative when the projections overlap)."""
