@@ -80,7 +80,6 @@ from dolfinx.mesh import entities_to_geometry
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import interpolation_points
-from fenics_matdepth.contact.kernels import _area_pairs_max_depth
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
@@ -451,32 +450,21 @@ def deepest_contact() -> dict:
     """The contact pair reaching deepest (collective): its depth, the penetrating triangle's
     and the penetrated tetrahedron's bodies (by their vertices, bones first) and reference
     centroids (mm), and the triangle's mean edge length, the local element size (mm)."""
-    s, area = contact.surface, contact._evaluate(False, False)
-    pair_a = contact._pair_a[area["active"]]
-    pair_k = contact._pair_k[area["active"]]
-    g = _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
-    best = (0.0, {})
-    if g.size and g.max() > 0.0:
-        p = int(np.argmax(g))
-        tri, tet = s.tri[pair_a[p]], s.tets[pair_k[p], :4]
-        edges = s.X[tri[[1, 2, 0]]] - s.X[tri]
+    deepest = contact.deepest_contact()
+    if deepest is None:
+        return {}
 
-        def body(vertices):
-            tags = body_of_global[s.global_vertex[vertices]]
-            return leg.BODIES[int(np.bincount(tags).argmax())]
+    def body(vertices):
+        return leg.BODIES[int(np.bincount(body_of_global[vertices]).argmax())]
 
-        best = (
-            float(g[p]),
-            {
-                "depth": float(g[p]),
-                "triangle_body": body(tri),
-                "triangle_at": np.round(s.X[tri].mean(axis=0), 1).tolist(),
-                "tetrahedron_body": body(tet),
-                "tetrahedron_at": np.round(s.X[tet].mean(axis=0), 1).tolist(),
-                "local_h": float(np.linalg.norm(edges, axis=1).mean()),
-            },
-        )
-    return max(comm.allgather(best), key=lambda b: b[0])[1]
+    return {
+        "depth": deepest["depth"],
+        "triangle_body": body(deepest["surface_vertices"]),
+        "triangle_at": np.round(deepest["surface_reference"], 1).tolist(),
+        "tetrahedron_body": body(deepest["tetrahedron_vertices"]),
+        "tetrahedron_at": np.round(deepest["tetrahedron_reference"], 1).tolist(),
+        "local_h": deepest["local_h"],
+    }
 
 
 def measure(t: float) -> dict:

@@ -220,6 +220,34 @@ def test_max_penetration_of_sunk_block(integration):
     # the clip shift moves each triangle by CLIP_SHIFT sqrt(2 A) (the lower box's top triangles
     # by 3.3e-10 up, into the upper box)
     assert np.isclose(op.max_penetration(), 0.2, rtol=1e-8, atol=0.0)
+    # where: a surface of one box in a tetrahedron of the other, both on the plane z = 1 of
+    # the reference configuration, the same answer on every rank
+    deepest = op.deepest_contact()
+    assert MPI.COMM_WORLD.allgather(deepest) == [deepest] * MPI.COMM_WORLD.size
+    assert deepest["depth"] == op.max_penetration()
+    X = op.surface.gathered()["X"]
+    surface = np.asarray(deepest["surface_vertices"])
+    tet = np.asarray(deepest["tetrahedron_vertices"])
+    assert surface.size == (3 if integration == "area" else 1) and tet.size == 4
+    assert np.allclose(X[surface, 2], 1.0)
+    assert np.allclose(X[surface].mean(axis=0), deepest["surface_reference"])
+    assert np.allclose(X[tet].mean(axis=0), deepest["tetrahedron_reference"])
+    bodies = op.body_of_vertex
+    assert len(set(bodies[surface])) == 1 and set(bodies[tet]) != set(bodies[surface])
+    moved = np.where(bodies[surface] == upper, -0.2, 0.0)
+    assert np.allclose(deepest["surface_position"][2], (X[surface, 2] + moved).mean())
+    if integration == "area":
+        edges = X[surface[[1, 2, 0]]] - X[surface]
+        assert deepest["local_h"] == pytest.approx(np.linalg.norm(edges, axis=1).mean())
+    # nothing penetrates: None
+    u.x.array[:] = 0.0
+    u.x.scatter_forward()
+    u.x.array[: 3 * n_owned].reshape(-1, 3)[:, 2] = np.where(
+        op.body_of_vertex[glob] == upper, 0.5, 0.0
+    )
+    u.x.scatter_forward()
+    op.update()
+    assert op.max_penetration() == 0.0 and op.deepest_contact() is None
 
 
 def test_force_resultants_are_opposite_and_match_rigid_translation():

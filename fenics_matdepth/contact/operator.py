@@ -383,19 +383,66 @@ class ContactOperator:
         the maximum of ``g_K(x_a)`` over the boundary vertices inside a tetrahedron
         (collective).
         """
+        g = self._pair_depths()[0]
+        local = float(g.max()) if g.size else 0.0
+        return self.comm.allreduce(local, op=MPI.MAX)
+
+    def _pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """This rank's pairs with their deepest material depth at the last update: ``(g,
+        pair_a, pair_k)`` (area integration: the active pairs, g over each polygon;
+        collocation: every pair, g at its vertex)."""
         r = self._evaluate(False, False)
         s = self.surface
         if self.integration == "area":
             active = r["active"]
-            g = _area_pairs_max_depth(
-                s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
-                self._pair_k[active],
-            )  # fmt: skip
+            pair_a, pair_k = self._pair_a[active], self._pair_k[active]
+            g = _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
         else:
-            w = s.weight[s.nodes[self._pair_a]]
+            pair_a, pair_k = self._pair_a, self._pair_k
+            w = s.weight[s.nodes[pair_a]]
             g = np.sqrt(2.0 * r["energy"] / (self.penalty * w))
-        local = float(g.max()) if g.size else 0.0
-        return self.comm.allreduce(local, op=MPI.MAX)
+        return g, pair_a, pair_k
+
+    def deepest_contact(self) -> dict[str, typing.Any] | None:
+        """Where the contact surface reaches deepest at the last update (collective; the same
+        on every rank): ``None`` where nothing penetrates, else a dict with
+
+        - ``depth``: the material depth reached, :meth:`max_penetration` (L);
+        - ``surface_vertices``: the global vertex numbers (those of ``u``'s index map) of the
+          penetrating boundary triangle (area integration; one vertex for collocation), and
+          ``tetrahedron_vertices``, the four of the tetrahedron it enters; with
+          :attr:`body_of_vertex` they tell which bodies meet there;
+        - ``surface_reference`` and ``tetrahedron_reference``: their centroids in the
+          reference configuration, and ``surface_position``, the surface's now (L);
+        - ``local_h``: the mean reference edge length of the triangle, the local element size
+          to judge the depth by (L; None for collocation).
+        """
+        g, pair_a, pair_k = self._pair_depths()
+        s = self.surface
+        best = (0.0, None)
+        if g.size and g.max() > 0.0:
+            p = int(np.argmax(g))
+            if self.integration == "area":
+                surf = s.tri[pair_a[p]]
+                edges = s.X[surf[[1, 2, 0]]] - s.X[surf]
+                local_h = float(np.linalg.norm(edges, axis=1).mean())
+            else:
+                surf, local_h = s.nodes[pair_a[p]][None], None
+            tet = s.tets[pair_k[p], :4]
+            best = (
+                float(g[p]),
+                {
+                    "depth": float(g[p]),
+                    "surface_vertices": s.global_vertex[surf].tolist(),
+                    "tetrahedron_vertices": s.global_vertex[tet].tolist(),
+                    "surface_reference": s.X[surf].mean(axis=0).tolist(),
+                    "tetrahedron_reference": s.X[tet].mean(axis=0).tolist(),
+                    "surface_position": s.x[surf].mean(axis=0).tolist(),
+                    "local_h": local_h,
+                },
+            )
+        # the deepest over the ranks, the lowest rank's on a tie
+        return max(self.comm.allgather(best), key=lambda b: b[0])[1]
 
     def force_resultants(self) -> np.ndarray:
         """Net contact force on each body, ``(num_bodies, 3)`` (force units; collective).
