@@ -467,6 +467,21 @@ def deepest_contact() -> dict:
     }
 
 
+def fold_touching(dofs=None, values=None) -> np.ndarray:
+    """The deformed positions of the fold's skin vertices with a contact force, one row per
+    vertex, on every rank (collective; ``dofs, values``: the contact gradient if at hand)."""
+    if dofs is None:
+        contact.update()  # at u as it is (a resumed run stopped before its first solve)
+        dofs, values = contact.gradient_array()
+    touched = np.unique(dofs[(values != 0.0) & is_fold[dofs // 3]] // 3)
+    # the contact surface holds every vertex of its pairs, with its position now
+    s = contact.surface
+    held = np.flatnonzero(np.isin(s.global_vertex, touched))
+    ids = np.concatenate(comm.allgather(s.global_vertex[held]))
+    positions = np.vstack(comm.allgather(s.x[held])).reshape(-1, 3)
+    return positions[np.unique(ids, return_index=True)[1]]
+
+
 def measure(t: float) -> dict:
     """Diagnostics of the converged state at load factor t (collective)."""
     det_F.interpolate(det_F_expr)
@@ -491,8 +506,7 @@ def measure(t: float) -> dict:
     on_patella = is_patella[dofs // 3]
     np.add.at(force, dofs[on_patella] % 3, -values[on_patella])
     force = comm.allreduce(force)
-    touched = np.unique(dofs[(values != 0.0) & is_fold[dofs // 3]] // 3)
-    fold_contacts = len(set(np.concatenate(comm.allgather(touched)).tolist()))
+    fold_contacts = len(fold_touching(dofs, values))
     shift, centroid, rotation = patella_motion()
     diag = contact.diagnostics()
     deepest = deepest_contact()
@@ -790,6 +804,7 @@ report(
 
 # +
 bent = gathered_grid()
+touching = fold_touching()
 if comm.rank == 0 and pv is not None and bent is not None:
     plotter = pv.Plotter(shape=(1, 2), window_size=(1200, 640), off_screen=True)
     plotter.subplot(0, 0)
@@ -840,15 +855,43 @@ if comm.rank == 0 and pv is not None and bent is not None:
     plotter.screenshot(output / "knee_cutaway.png")
     plotter.close()
 
-    # close-up of the fold behind the knee, cut at x = 0, mesh edges shown
+    # close-up of the fold behind the knee, cut at x = 0, mesh edges shown: the bodies (left)
+    # and the material depth (right), the fold's skin vertices in self-contact within 6 mm of
+    # the cut marked in red on it
     crease = np.array([0.0, -geometry.outer_radius(geometry.crease_level), geometry.crease_level])
     ref = centres.cell_centers().points
     near = np.linalg.norm(ref - crease, axis=1) < 45.0
     fold = bent.extract_cells(np.flatnonzero(near & (ref[:, 0] < 0.0)))
-    plotter = pv.Plotter(window_size=(800, 700), off_screen=True)
-    plotter.add_mesh(fold, scalars=scale, cmap="viridis", n_colors=12, show_edges=True)
-    plotter.add_text(f"the fold behind the knee at {reached:.0f} deg (cut at x = 0)", font_size=10)
-    plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    touching = touching[np.abs(touching[:, 0]) < 6.0].copy()
+    touching[:, 0] = fold.bounds[1] + 1.0  # in front of the cut
+    print(f"the fold's skin vertices in self-contact within 6 mm of the cut: {len(touching)}")
+    plotter = pv.Plotter(shape=(1, 2), window_size=(1200, 640), off_screen=True)
+    for i, (look, title) in enumerate(
+        (
+            (
+                {"scalars": "body", "cmap": "tab10", "clim": [1, 9]},
+                f"the fold behind the knee at {reached:.0f} deg: bodies",
+            ),
+            (
+                {"scalars": scale, "cmap": "viridis", "n_colors": 12},
+                "material depth; red: skin in self-contact",
+            ),
+        )
+    ):
+        plotter.subplot(0, i)
+        plotter.add_mesh(fold, show_edges=True, **look)
+        if len(touching):
+            plotter.add_points(touching, color="red", point_size=9, render_points_as_spheres=True)
+        plotter.add_text(title, font_size=10)
+        plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+        if len(touching):  # centred on the fold's contact, from as far as the whole cut
+            camera = plotter.camera
+            offset = np.subtract(camera.position, camera.focal_point)
+            camera.focal_point = tuple(touching.mean(axis=0))
+            camera.position = tuple(touching.mean(axis=0) + offset)
+            plotter.renderer.reset_camera_clipping_range()
+        plotter.camera.zoom(1.4)
+    plotter.link_views()
     plotter.screenshot(output / "knee_fold.png")
     plotter.close()
 
