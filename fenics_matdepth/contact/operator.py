@@ -411,7 +411,7 @@ class ContactOperator:
         - ``surface_vertices``: the global vertex numbers (those of ``u``'s index map) of the
           penetrating boundary triangle (area integration; one vertex for collocation), and
           ``tetrahedron_vertices``, the four of the tetrahedron it enters; with
-          :attr:`body_of_vertex` they tell which bodies meet there;
+          the ``body_of_vertex`` array they tell which bodies meet there;
         - ``surface_reference`` and ``tetrahedron_reference``: their centroids in the
           reference configuration, and ``surface_position``, the surface's now (L);
         - ``local_h``: the mean reference edge length of the triangle, the local element size
