@@ -493,6 +493,10 @@ class ContactProblem:
         for key, value in {**options, **user}.items():
             opts[key] = value
         opts.prefixPop()
+        if "mat_mumps_icntl_14" not in user and "mat_mumps_icntl_14" in options:
+            # read once now: MUMPS reads it at the first factorisation, and a problem that
+            # never factorises would otherwise leave it for PETSc to report as unused at exit
+            opts.getInt(self.prefix + "mat_mumps_icntl_14")
         self.snes.setFunction(self._residual, self._b)
         self.snes.setJacobian(self._jacobian, self._A, self._A)
         self.snes.setUpdate(self._start_iteration)

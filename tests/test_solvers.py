@@ -4,6 +4,9 @@ close a gap, the NewtonSolver problem, load stepping, and contact added to a use
 from __future__ import annotations
 
 import itertools
+import os
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -150,6 +153,42 @@ def test_failed_ldlt_factorisation_is_retried_with_lu():
     assert np.array_equal(u.x.array, start)  # no Newton step was taken
     problem.solve(raise_on_failure=False)
     assert solved_with == ["cholesky", "lu", "lu"]  # LU from then on
+
+
+_NEVER_SOLVED = """
+from mpi4py import MPI
+import dolfinx, ufl
+import fenics_matdepth as fm
+
+mesh = dolfinx.mesh.create_box(
+    MPI.COMM_WORLD, [[0, 0, 0], [1, 1, 1]], [2, 2, 2], dolfinx.mesh.CellType.tetrahedron
+)
+V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+u = dolfinx.fem.Function(V)
+F = ufl.inner(ufl.grad(u), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
+fm.ContactProblem(F, u, contact, petsc_options_prefix="never_solved_")
+"""
+
+
+def test_a_problem_never_solved_leaves_no_unused_petsc_option():
+    """The working-space option the problem sets for MUMPS is not reported by PETSc as unused
+    at exit when the problem never factorises (a created-but-unsolved problem, e.g. a run
+    resumed and stopped before its first solve, printed that warning)."""
+    if MPI.COMM_WORLD.rank != 0:
+        return
+    # a fresh serial process (not a rank of this run), PETSc listing unused options at exit
+    env = {
+        k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "PRTE_", "MPI_"))
+    }
+    env.update(PETSC_OPTIONS="-options_left", MATDEPTH_QUIET_JIT="1")
+    out = subprocess.run(
+        [sys.executable, "-c", _NEVER_SOLVED], env=env, capture_output=True, text=True,
+        check=True, timeout=600,
+    )  # fmt: skip
+    printed = out.stdout + out.stderr
+    assert "Option left: name:-never_solved_mat_mumps_icntl_14" not in printed, printed
+    assert "There are no unused options." in printed, printed
 
 
 def test_convergence_test_stops_a_line_search_without_progress():
