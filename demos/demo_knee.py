@@ -52,7 +52,8 @@
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
-# `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's;
+# `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's,
+# `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see docs/demos.md);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
@@ -98,6 +99,7 @@ bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
 max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 50))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
+al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -696,6 +698,13 @@ def counting_set_flexion(t: float) -> None:
     if augmented is not None and al_reset:
         augmented.pressure = np.zeros_like(augmented.pressure)
         contact.set_pressure(augmented.pressure)
+    elif augmented is not None and al_carry != 1.0:
+        # a fraction of the pressures of the last converged step (kept for the retries)
+        if last.get("carried_from") != last["angle"]:
+            last["carried"] = augmented.pressure.copy()
+            last["carried_from"] = last["angle"]
+        augmented.pressure = al_carry * last["carried"]
+        contact.set_pressure(augmented.pressure)
     set_flexion(t)
 
 
@@ -775,7 +784,7 @@ if failure is not None:
 # The paper's split (§6.3, 376 min on a 300 MHz R12000): force and stiffness 63 %, collision
 # detection 22 %, linear solve 15 %. Here "force + stiffness" is the bulk assembly plus the
 # contact pair kernels and their insertion, "contact update" the gather, tree refit and pair
-# search, "linear solve" the LU (MUMPS) with the matrix compaction before it. Only converged
+# search, "linear solve" the MUMPS factorisation (LDLᵀ or LU) and solve. Only converged
 # steps' last solves are counted by `problem.timings`, so this is the split of the successful
 # work.
 
