@@ -26,6 +26,14 @@ def _collective_cleanup():
     MPI.COMM_WORLD.Barrier()
 
 
+@pytest.fixture
+def child_env() -> dict[str, str]:
+    """The environment for a fresh serial child process: without the MPI launcher's
+    variables (a child inheriting them would try to join this run and hang)."""
+    launcher = ("OMPI_", "PMIX_", "PRTE_", "MPI_")
+    return {k: v for k, v in os.environ.items() if not k.startswith(launcher)}
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     """Under MPI, a test that fails on some ranks only leaves the others waiting in a

@@ -3,7 +3,6 @@ following edits of any module of the package (fenics_matdepth/_cache.py)."""
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -86,7 +85,7 @@ def value():
 """
 
 
-def test_cached_kernel_follows_an_edit_of_another_module(tmp_path):
+def test_cached_kernel_follows_an_edit_of_another_module(tmp_path, child_env):
     """A cached kernel that inlines a function of another module of the package is recompiled
     when only that other module changes (numba's own stamp covers the defining file only: the
     old machine code would be loaded, as happened with ``geometry/clip.py``)."""
@@ -96,13 +95,8 @@ def test_cached_kernel_follows_an_edit_of_another_module(tmp_path):
     copy = tmp_path / "fenics_matdepth"
     shutil.copytree(package, copy, ignore=shutil.ignore_patterns("__pycache__"))
     (copy / "_probe_b.py").write_text(_PROBE_B)
-    # a fresh process: not an MPI rank of this run (a child inheriting the launcher's
-    # variables would try to join it and hang), and numba's default cache location
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if not k.startswith(("OMPI_", "PMIX_", "PRTE_", "MPI_")) and k != "NUMBA_CACHE_DIR"
-    }
+    # a fresh process, not an MPI rank of this run, with numba's default cache location
+    env = {k: v for k, v in child_env.items() if k != "NUMBA_CACHE_DIR"}
     env.update(PYTHONPATH=str(tmp_path), MATDEPTH_QUIET_JIT="1")
     script = "import fenics_matdepth._probe_b as b; print(b.value())"
 
