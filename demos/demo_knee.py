@@ -53,7 +53,8 @@
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
 # `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's,
-# `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see docs/demos.md);
+# `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see docs/demos.md),
+# `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
@@ -100,6 +101,7 @@ max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 50))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
+al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -370,7 +372,7 @@ h_boundary = stats["median_edge"]
 solver = problem
 augmented = None
 if al_tol_h > 0.0:
-    augmented = fm.AugmentedLagrangian(problem, tol_h=al_tol_h, h=h_boundary)
+    augmented = fm.AugmentedLagrangian(problem, tol_h=al_tol_h, h=h_boundary, pressure_term=al_term)
     solver = augmented
 # -
 
@@ -624,7 +626,6 @@ def load_pressure(t: float) -> None:
     pressure[global_ids] = owned
     comm.Allreduce(MPI.IN_PLACE, pressure, op=MPI.SUM)  # each vertex is owned once
     augmented.pressure = pressure
-    contact.set_pressure(pressure)
 
 
 steps_file = output / "knee_steps.json"
@@ -697,14 +698,12 @@ def counting_set_flexion(t: float) -> None:
     last["try"] = t * total_angle
     if augmented is not None and al_reset:
         augmented.pressure = np.zeros_like(augmented.pressure)
-        contact.set_pressure(augmented.pressure)
     elif augmented is not None and al_carry != 1.0:
         # a fraction of the pressures of the last converged step (kept for the retries)
         if last.get("carried_from") != last["angle"]:
             last["carried"] = augmented.pressure.copy()
             last["carried_from"] = last["angle"]
         augmented.pressure = al_carry * last["carried"]
-        contact.set_pressure(augmented.pressure)
     set_flexion(t)
 
 

@@ -29,6 +29,21 @@ drops to 0 as it leaves the other body: a kink of the energy on which Newton's m
 contact pressure from below, the overlap halves at each update and stays positive, and every
 inner solve stays in the smooth region. Should an inner solve fail anyway, the update is
 halved and the solve retried from the state before it.
+
+The kink remains where pressures carried from an earlier solve (the last load step) hold a
+face that now only touches: the equilibrium sits on it, and Newton's method cannot converge
+however small the load step (measured on the knee, docs/demos.md). ``pressure_term =
+"quadratic"`` removes it: the pressure term is ``p g^2 / (2 w)`` with ``w`` half the
+tolerance and ``p`` the mean nodal pressure of the triangle, so the pressures act as a
+stiffness, ``eps + p / w``, and the energy is C1 everywhere, like the plain penalty's. The
+update then sets each nodal pressure to the contact pressure the solve produced,
+
+    ``p_i <- (1 - omega) p_i + omega int mu_i (eps + p_T / w) g dA / int mu_i dA``
+
+(omega = 1 by default), which lowers the pressures where a contact relaxes. At a fixed point
+``p = (eps + p / w) g``, so ``g = p / (eps + p / w) < w``: the overlap ends below half the
+tolerance, whatever the pressure; the price is that the stiffness grows with the pressure,
+``p / w``, like a penalty sized for that overlap, reached by updates from a moderate start.
 """
 
 from __future__ import annotations
@@ -147,13 +162,18 @@ class AugmentedLagrangian:
         max_updates: pressure updates before a solve counts as failed.
         h: mesh size (L); default: the median edge length of the exterior boundary triangles
             (as :func:`~fenics_matdepth.propose_penalty`).
-        relaxation: ``omega`` of the Uzawa step (see the module's docstring), in (0, 1].
+        relaxation: ``omega`` of the Uzawa step (see the module's docstring), in (0, 1];
+            default 0.5 for the linear pressure term, 1 for the quadratic one.
         inner_rtol: the solves after a pressure update stop once the residual is below this
             fraction of the initial residual of the solve's first (pre-update) solve, or at the
             problem's own tolerances (see ``_absolute_tolerance``).
+        pressure_term: ``"linear"`` (``int p g dA``, the pressures as Lagrange multipliers:
+            the overlap can fall far below the tolerance at a moderate penalty) or
+            ``"quadratic"`` (``int p g^2 / (2 w) dA`` with ``w = tol / 2``: no kink where a
+            face lies flat on the other body, pressures that fall where a contact relaxes;
+            for long load paths whose contacts slide and open, see the module's docstring).
 
     Attributes:
-        pressure: the nodal pressures (global vertex numbering, the same on every rank).
         tolerance: the overlap accepted (L).
         history: one :class:`UzawaUpdate` per inner solve of the last :meth:`solve`.
         total_updates: pressure updates summed over every :meth:`solve` so far.
@@ -167,10 +187,18 @@ class AugmentedLagrangian:
         tol_h: float | None = None,
         max_updates: int = 20,
         h: float | None = None,
-        relaxation: float = 0.5,
+        relaxation: float | None = None,
         inner_rtol: float = 1e-6,
+        pressure_term: str = "linear",
     ):
         contact = problem.contact
+        if pressure_term not in ("linear", "quadratic"):
+            raise ValueError(
+                f"pressure_term must be 'linear' or 'quadratic', got {pressure_term!r}"
+            )
+        self.pressure_term = pressure_term
+        if relaxation is None:
+            relaxation = 0.5 if pressure_term == "linear" else 1.0
         if contact.integration != "area":
             raise ValueError(
                 "the augmented Lagrangian needs a contact operator with area integration"
@@ -195,15 +223,27 @@ class AugmentedLagrangian:
         self.u = problem.u
         self.contact = contact
         self.max_updates = int(max_updates)
+        #: ``w`` of the quadratic pressure term (L), 0 for the linear one
+        self.width = 0.5 * self.tolerance if pressure_term == "quadratic" else 0.0
         self.pressure = np.zeros(contact.num_vertices)
-        contact.set_pressure(self.pressure)
         self.history: list[UzawaUpdate] = []
         self.total_updates = 0
         self.total_newton_iterations = 0
 
+    @property
+    def pressure(self) -> np.ndarray:
+        """The nodal pressures (global vertex numbering, the same on every rank); assigning
+        them sets them on the operator too (e.g. to restore them from a checkpoint)."""
+        return self._pressure
+
+    @pressure.setter
+    def pressure(self, value: np.ndarray) -> None:
+        value = np.asarray(value, dtype=float)
+        self.contact.set_pressure(value, self.width)
+        self._pressure = self.contact.pressure
+
     def _set(self, pressure: np.ndarray) -> None:
         self.pressure = pressure
-        self.contact.set_pressure(pressure)
 
     def update_pressure(self) -> float:
         """One Uzawa step at the current state (collective).
@@ -211,14 +251,22 @@ class AugmentedLagrangian:
         Returns:
             The largest change of a nodal pressure, relative to the largest new pressure.
         """
-        gmom, amom = self.contact.pressure_moments()
         new = np.zeros_like(self.pressure)
-        touched = amom > 0.0
-        new[touched] = np.maximum(
-            0.0,
-            self.pressure[touched]
-            + self.relaxation * self.contact.penalty * gmom[touched] / amom[touched],
-        )
+        if self.width > 0.0:
+            gmom, amom = self.contact.pressure_moments(stiffness_weighted=True)
+            touched = amom > 0.0
+            contact = self.contact.penalty * gmom[touched] / amom[touched]
+            new[touched] = np.maximum(
+                0.0, self.pressure[touched] + self.relaxation * (contact - self.pressure[touched])
+            )
+        else:
+            gmom, amom = self.contact.pressure_moments()
+            touched = amom > 0.0
+            new[touched] = np.maximum(
+                0.0,
+                self.pressure[touched]
+                + self.relaxation * self.contact.penalty * gmom[touched] / amom[touched],
+            )
         scale = max(float(np.max(new, initial=0.0)), np.finfo(float).tiny)
         change = float(np.max(np.abs(new - self.pressure), initial=0.0)) / scale
         self._set(new)

@@ -140,6 +140,59 @@ def test_pressure_moments():
         assert amom.sum() == pytest.approx(area, rel=1e-12)
 
 
+WIDTH = 0.05
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_quadratic_pressure_term(seed):
+    """With a width w the pressure term is ``p_mean g^2 / (2 w)``: the plain kernel at the
+    penalty ``eps + p_mean / w`` (against an independent quadrature), derivatives exact."""
+    for x_tri, x_tet, depth in random_configs(seed, 8):
+        p = _pressures(seed)
+        stiffness = EPS + p.mean() / WIDTH
+        energy, grad, hess = augmented_pair_energy(x_tri, x_tet, depth, EPS, p, width=WIDTH)
+        reference = _quadrature(x_tri, x_tet, depth, lambda mu, g, k=stiffness: 0.5 * k * g * g)
+        assert energy == pytest.approx(reference, rel=1e-10)
+        plain = pair_energy(x_tri, x_tet, depth, stiffness)
+        assert np.allclose(grad, plain[1], rtol=1e-12, atol=1e-12 * np.abs(grad).max())
+
+        def f(x, p=p, depth=depth):
+            return augmented_pair_energy(*split(x), depth, EPS, p, width=WIDTH)
+
+        x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
+        g_fd, h_fd = fd_derivatives(f, x0)
+        assert rel_err(grad, g_fd) < FD_RTOL
+        assert rel_err(hess, h_fd) < FD_RTOL
+
+
+def _flat_on_face(s):
+    """A triangle parallel to the boundary face z = 0 of the unit tetrahedron (depth z), at
+    height s (outside for s < 0)."""
+    x_tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    depth = np.array([0.0, 0.0, 0.0, 1.0])
+    x_tri = np.array([[0.1, 0.1, s], [0.6, 0.1, s], [0.1, 0.6, s]])
+    return x_tri, x_tet, depth
+
+
+def test_quadratic_pressure_term_has_no_kink():
+    """A face lying flat on the other body's boundary enters with its whole area at once: the
+    linear pressure term's energy then grows like ``p A s`` with the overlap s (a kink at
+    s = 0, where the energy is 0 outside), the quadratic one's like ``s^2`` (C1)."""
+    p = np.array([1.0, 2.0, 1.5])
+    area = 0.125
+    s = 1e-6
+
+    def slope(width):
+        e1 = augmented_pair_energy(*_flat_on_face(s), EPS, p, width=width)[0]
+        e2 = augmented_pair_energy(*_flat_on_face(2 * s), EPS, p, width=width)[0]
+        outside = augmented_pair_energy(*_flat_on_face(-s), EPS, p, width=width)[0]
+        assert outside == 0.0
+        return (e2 - e1) / s
+
+    assert slope(0.0) == pytest.approx(p.mean() * area, rel=1e-4)  # the kink
+    assert abs(slope(WIDTH)) < 1e-3 * p.mean() * area
+
+
 # ------------------------------------------------------------------------------------------
 # Uzawa driver: the contact patch test (tests/test_validation.py) with a soft penalty
 # ------------------------------------------------------------------------------------------
@@ -177,6 +230,55 @@ def test_patch_augmented_lagrangian():
     assert np.all(np.abs(out["pressure"] / p - 1.0) < 0.01)
     # the multipliers carry the load: nodal pressures near p on each surface's share
     assert diag["updates"] >= 1
+
+
+def test_patch_augmented_lagrangian_quadratic():
+    """The quadratic pressure term on the same patch: the overlap below the tolerance (its
+    fixed point is below half of it), the pressure uniform within 1 %, and the nodal pressures
+    the contact pressure (on each surface its own share of the load)."""
+    penalty = 10.0
+    tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)
+    out = _solve_patch(
+        penalty, augmented={"tol": tol, "max_updates": 10, "pressure_term": "quadratic"}
+    )
+    solver = out["solver"]
+    p = PATCH_PRESSURE
+    diag = solver.diagnostics()
+    _report(
+        f"\npatch, quadratic pressure term: {diag['updates']} updates, "
+        f"{diag['newton_iterations']} Newton it, overlap {diag['overlap_tol']:.3f} tol, "
+        f"columns [{out['pressure'].min() / p:.5f}, {out['pressure'].max() / p:.5f}] p, "
+        f"largest nodal pressure {diag['max_pressure'] / p:.3f} p"
+    )
+    assert solver.width == pytest.approx(0.5 * tol)
+    assert out["contact"].max_penetration() <= tol
+    assert diag["updates"] >= 1
+    assert out["total_force"] == pytest.approx(p, rel=1e-6)
+    assert np.all(np.abs(out["pressure"] / p - 1.0) < 0.01)
+    # each surface carries part of p: the nodal pressures are of order p, not beyond it
+    assert 0.2 * p < diag["max_pressure"] < 1.5 * p
+
+
+def test_quadratic_pressures_fall_where_the_contact_relaxes():
+    """Carried pressures far above the contact pressure: the linear term keeps them (its
+    update only adds), the quadratic one brings them down to the contact pressure."""
+    penalty = 10.0
+    tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)
+    out = _solve_patch(
+        penalty, augmented={"tol": tol, "max_updates": 10, "pressure_term": "quadratic"}
+    )
+    solver = out["solver"]
+    before = solver.pressure.copy()
+    solver.pressure = 5.0 * before
+    solver.solve()  # the overlap shrinks under the stiffer contact: no update needed
+    assert solver.diagnostics()["updates"] == 0
+    solver.update_pressure()
+    _report(
+        f"\ncarried pressures x5: largest {5 * before.max() / PATCH_PRESSURE:.3f} p, after one "
+        f"update {solver.pressure.max() / PATCH_PRESSURE:.3f} p "
+        f"(before {before.max() / PATCH_PRESSURE:.3f} p)"
+    )
+    assert solver.pressure.max() < 1.5 * before.max()
 
 
 def test_rigid_mode_damping_floating_cube():

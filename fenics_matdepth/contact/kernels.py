@@ -1000,7 +1000,7 @@ def _add_row(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
 
 @njit(cache=True)
 def _area_pairs_augmented(
-    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, want_grad, want_hess
+    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, width, want_grad, want_hess
 ):
     """Augmented-Lagrangian energies of many (triangle, tetrahedron) pairs at fixed pressures.
 
@@ -1017,10 +1017,22 @@ def _area_pairs_augmented(
     zero depths), so the derivatives are the exact ones of the plain kernel. With all three
     pressures zero the second term is skipped and the result is the plain penalty energy.
 
+    That energy has a kink where a face lies flat on the other body's boundary (its whole area
+    enters at once and ``int p g dA`` grows linearly with the overlap). With ``width = w > 0``
+    the pressure term is the quadratic ``p g^2 / (2 w)`` instead, with ``p`` the mean of the
+    triangle's three nodal pressures:
+
+        ``E = ((eps + p_mean / w) / 2) int_{T cap K} g^2 dA``,
+
+    the plain kernel with the penalty ``eps + p_mean / w`` (C1 in the positions, like the plain
+    penalty): the pressures act as a stiffness, the force ``(eps + p / w) g grad g`` is
+    ``p`` where ``g = w``.
+
     Args:
         x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess: as `_area_pairs`.
         pressure: (nv,) nodal contact pressure of each vertex (pressure units, >= 0); only
             the values at triangle vertices are read.
+        width: 0 for the linear pressure term, else ``w`` (length) of the quadratic one.
 
     Returns:
         ``energy (np,)``, ``grad (np, 21)``, ``hess (np, 21, 21)`` as `_area_pairs`.
@@ -1036,14 +1048,20 @@ def _area_pairs_augmented(
     offset = np.empty(3, dtype=FLOAT)
     acc_g = np.empty(21, dtype=FLOAT)
     acc_h = np.empty((21, 21), dtype=FLOAT)
+    zero = np.zeros(3, dtype=FLOAT)
     for p in range(npairs):
         has_pressure = False
+        stiffness = penalty
         for a in range(3):
             v = tri[pair_tri[p], a]
             offset[a] = pressure[v] / penalty
             has_pressure = has_pressure or pressure[v] != 0.0
+            if width > 0.0:
+                stiffness += pressure[v] / (3.0 * width)
             for r in range(3):
                 xs[a, r] = x[v, r]
+        if width > 0.0:
+            has_pressure = False  # one term, the plain kernel at the pair's stiffness
         k = pair_tet[p]
         split = _is_split(tet, k)
         _zero_folded(21, want_grad, want_hess, acc_g, acc_h)
@@ -1055,8 +1073,12 @@ def _area_pairs_augmented(
                 if term == 1:
                     for a in range(4):
                         dt[a] = 0.0
-                es = _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad,
-                                hess, p)  # fmt: skip
+                if width > 0.0:
+                    es = _area_pair(xs, xt, dt, zero, stiffness, want_grad, want_hess, work,
+                                    grad, hess, p)  # fmt: skip
+                else:
+                    es = _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work,
+                                    grad, hess, p)  # fmt: skip
                 if es < 0.0:
                     break  # no polygon: neither term contributes
                 hit = True
@@ -1075,7 +1097,7 @@ def _area_pairs_augmented(
 
 @njit(cache=True)
 def _area_pairs_augmented_active(
-    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, want_grad, want_hess
+    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, width, want_grad, want_hess
 ):
     """Like `_area_pairs_augmented`, for the intersecting pairs only (as `_area_pairs_active`).
 
@@ -1084,8 +1106,8 @@ def _area_pairs_augmented_active(
     """
     active = _intersecting(x, tri, tet, pair_tri, pair_tet)
     energy, grad, hess = _area_pairs_augmented(
-        x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, pressure, want_grad,
-        want_hess,
+        x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, pressure, width,
+        want_grad, want_hess,
     )  # fmt: skip
     return active, energy, grad, hess
 
@@ -1191,17 +1213,20 @@ def augmented_pair_energy(
     penalty: float,
     pressure_tri: np.ndarray,
     centroid_depth: float | None = None,
+    width: float = 0.0,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Augmented-Lagrangian energy of one (triangle, tetrahedron) pair, exact derivatives.
 
     Args:
         x_tri, x_tet, depth_tet, penalty, centroid_depth: as :func:`pair_energy`.
         pressure_tri: (3,) nodal contact pressures of the triangle's vertices (pressure).
+        width: 0: the linear pressure term; ``w > 0``: the quadratic one (see ``width`` of
+            `_area_pairs_augmented`).
 
     Returns:
         ``(E, grad, hess)``: ``int_{T cap K} (p g + (eps/2) g^2) dA`` with ``p`` interpolated
-        linearly on the triangle (energy), gradient (21,) and Hessian (21, 21) as
-        :func:`pair_energy`.
+        linearly on the triangle, or ``((eps + p_mean / w) / 2) int_{T cap K} g^2 dA`` (energy),
+        gradient (21,) and Hessian (21, 21) as :func:`pair_energy`.
     """
     xs = np.ascontiguousarray(x_tri, dtype=FLOAT).reshape(3, 3)
     x, depth, tet = _one_pair_arrays(xs, x_tet, depth_tet, centroid_depth)
@@ -1209,7 +1234,7 @@ def augmented_pair_energy(
     pressure[:3] = np.asarray(pressure_tri, dtype=FLOAT).reshape(3)
     one = np.zeros(1, dtype=INDEX)
     energy, grad, hess = _area_pairs_augmented(
-        x, depth, _ONE_TRI, tet, one, one, penalty, pressure, True, True
+        x, depth, _ONE_TRI, tet, one, one, penalty, pressure, float(width), True, True
     )
     return float(energy[0]), grad[0], hess[0]
 

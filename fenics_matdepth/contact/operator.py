@@ -123,6 +123,7 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
+        self._pressure_width = 0.0
         # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(self, allow_reference_overlap)
         self.update()
@@ -190,7 +191,7 @@ class ContactOperator:
                 held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
                 active, energy, grad, hess = _area_pairs_augmented_active(
                     s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
-                    self.penalty, held_pressure, want_grad, want_hess,
+                    self.penalty, held_pressure, self._pressure_width, want_grad, want_hess,
                 )  # fmt: skip
             pa, pk = self._pair_a[active], self._pair_k[active]
         else:
@@ -325,18 +326,32 @@ class ContactOperator:
         """Nodal contact pressures (global vertex numbering, pressure units), or ``None``."""
         return self._pressure
 
-    def set_pressure(self, pressure: np.ndarray | None) -> None:
+    @property
+    def pressure_width(self) -> float:
+        """``w`` of the quadratic pressure term (L), 0 for the linear one (see
+        :meth:`set_pressure`)."""
+        return self._pressure_width
+
+    def set_pressure(self, pressure: np.ndarray | None, width: float = 0.0) -> None:
         """Set the nodal contact pressures of the augmented Lagrangian (or ``None``: plain
         penalty).
 
-        The energy becomes ``sum over pairs of int_{T cap K} (p g + (eps/2) g^2) dA``, ``p``
-        interpolated linearly on each penetrating boundary triangle from its vertices' values
-        (see ``_area_pairs_augmented``); its derivatives are exact at fixed pressures.
+        With ``width = 0`` the energy becomes ``sum over pairs of int_{T cap K} (p g +
+        (eps/2) g^2) dA``, ``p`` interpolated linearly on each penetrating boundary triangle
+        from its vertices' values; with ``width = w > 0`` it is ``sum over pairs of
+        ((eps + p_T / w) / 2) int_{T cap K} g^2 dA``, ``p_T`` the mean of the triangle's nodal
+        pressures: the pressures stiffen the penalty, and the energy has no kink where a face
+        lies flat on the other body (see ``_area_pairs_augmented``). The derivatives are exact
+        at fixed pressures.
 
         Args:
             pressure: ``(num_vertices,)`` values >= 0, the same on every rank (only boundary
                 vertices matter).
+            width: 0, or ``w`` (L) of the quadratic pressure term.
         """
+        width = float(width)
+        if not (np.isfinite(width) and width >= 0.0):
+            raise ValueError(f"width must be a length >= 0, got {width}")
         if pressure is not None:
             pressure = np.ascontiguousarray(pressure, dtype=FLOAT)
             if pressure.shape != (self.num_vertices,):
@@ -346,13 +361,19 @@ class ContactOperator:
             if self.integration != "area":
                 raise ValueError("nodal contact pressures need integration='area'")
         self._pressure = pressure
+        self._pressure_width = width
         self._cache.clear()
 
-    def pressure_moments(self) -> tuple[np.ndarray, np.ndarray]:
+    def pressure_moments(self, stiffness_weighted: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Per vertex, ``int mu_i g dA`` (L^3) and ``int mu_i dA`` (L^2) over every intersection
         polygon of the boundary triangles around vertex i (``mu_i`` its hat function on the
         triangle), at the last update: the Uzawa update's data (collective; global vertex
-        numbering, the same on every rank)."""
+        numbering, the same on every rank).
+
+        Args:
+            stiffness_weighted: multiply each triangle's ``int mu_i g dA`` by its stiffness
+                relative to the penalty, ``1 + p_T / (w eps)`` with the quadratic pressure term
+                (1 otherwise): ``eps gmom / amom`` is then the nodal contact pressure."""
         r = self._evaluate(False, False)
         active = r["active"]
         s = self.surface
@@ -360,6 +381,9 @@ class ContactOperator:
             s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
             self._pair_k[active],
         )  # fmt: skip
+        if stiffness_weighted and self._pressure is not None and self._pressure_width > 0.0:
+            held = self._pressure[s.global_vertex[s.tri[self._pair_a[active]]]]
+            gmom = gmom * (1.0 + held.mean(axis=1) / (self._pressure_width * self.penalty))[:, None]
         # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are
         # the moments
         verts = s.global_vertex[s.tri[self._pair_a[active]].ravel()]
