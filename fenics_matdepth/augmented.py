@@ -36,14 +36,18 @@ however small the load step (measured on the knee, docs/demos.md). ``pressure_te
 "quadratic"`` removes it: the pressure term is ``p g^2 / (2 w)`` with ``w`` half the
 tolerance and ``p`` the mean nodal pressure of the triangle, so the pressures act as a
 stiffness, ``eps + p / w``, and the energy is C1 everywhere, like the plain penalty's. The
-update then sets each nodal pressure to the contact pressure the solve produced,
+update then sets each nodal pressure to the contact pressure the solve produced at the deepest
+point of the penetrating triangles around the vertex,
 
-    ``p_i <- (1 - omega) p_i + omega int mu_i (eps + p_T / w) g dA / int mu_i dA``
+    ``p_i <- (1 - omega) p_i + omega max over those polygons of (eps + p_T / w) g``
 
-(omega = 1 by default), which lowers the pressures where a contact relaxes. At a fixed point
-``p = (eps + p / w) g``, so ``g = p / (eps + p / w) < w``: the overlap ends below half the
-tolerance, whatever the pressure; the price is that the stiffness grows with the pressure,
-``p / w``, like a penalty sized for that overlap, reached by updates from a moderate start.
+(omega = 1 by default; ``ContactOperator.peak_pressure``), which lowers the pressures where a
+contact relaxes. At a fixed point ``p = (eps + p / w) g_max``, so ``g_max = p / (eps + p / w)
+< w``: the overlap ends below half the tolerance, whatever the pressure. (With the mean of
+``g`` over the vertex's triangles instead of its maximum, the knee's fixed point kept its
+deepest point at 1.36 times the tolerance.) The price is that the
+stiffness grows with the pressure, ``p / w``, like a penalty sized for that overlap, reached
+by updates from a moderate start.
 """
 
 from __future__ import annotations
@@ -253,11 +257,11 @@ class AugmentedLagrangian:
         """
         new = np.zeros_like(self.pressure)
         if self.width > 0.0:
-            gmom, amom = self.contact.pressure_moments(stiffness_weighted=True)
-            touched = amom > 0.0
-            contact = self.contact.penalty * gmom[touched] / amom[touched]
+            peak = self.contact.peak_pressure()
+            touched = peak > 0.0
             new[touched] = np.maximum(
-                0.0, self.pressure[touched] + self.relaxation * (contact - self.pressure[touched])
+                0.0,
+                self.pressure[touched] + self.relaxation * (peak[touched] - self.pressure[touched]),
             )
         else:
             gmom, amom = self.contact.pressure_moments()

@@ -364,16 +364,11 @@ class ContactOperator:
         self._pressure_width = width
         self._cache.clear()
 
-    def pressure_moments(self, stiffness_weighted: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def pressure_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Per vertex, ``int mu_i g dA`` (L^3) and ``int mu_i dA`` (L^2) over every intersection
         polygon of the boundary triangles around vertex i (``mu_i`` its hat function on the
         triangle), at the last update: the Uzawa update's data (collective; global vertex
-        numbering, the same on every rank).
-
-        Args:
-            stiffness_weighted: multiply each triangle's ``int mu_i g dA`` by its stiffness
-                relative to the penalty, ``1 + p_T / (w eps)`` with the quadratic pressure term
-                (1 otherwise): ``eps gmom / amom`` is then the nodal contact pressure."""
+        numbering, the same on every rank)."""
         r = self._evaluate(False, False)
         active = r["active"]
         s = self.surface
@@ -381,9 +376,6 @@ class ContactOperator:
             s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
             self._pair_k[active],
         )  # fmt: skip
-        if stiffness_weighted and self._pressure is not None and self._pressure_width > 0.0:
-            held = self._pressure[s.global_vertex[s.tri[self._pair_a[active]]]]
-            gmom = gmom * (1.0 + held.mean(axis=1) / (self._pressure_width * self.penalty))[:, None]
         # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are
         # the moments
         verts = s.global_vertex[s.tri[self._pair_a[active]].ravel()]
@@ -397,6 +389,25 @@ class ContactOperator:
         total = np.empty_like(local)
         self.comm.Allreduce(local, total, op=MPI.SUM)
         return total[0], total[1]
+
+    def peak_pressure(self) -> np.ndarray:
+        """Per vertex, the largest contact pressure at the deepest point of a penetrating
+        boundary triangle around it: the maximum over the triangle's intersection polygons of
+        ``k g``, ``k`` the pair's stiffness (``eps``, or ``eps + p_T / w`` with the quadratic
+        pressure term, see :meth:`set_pressure`), at the last update; 0 where no triangle
+        penetrates (collective; global vertex numbering, the same on every rank). The update of
+        the quadratic pressure term (area integration)."""
+        g, pair_a, _ = self._pair_depths()
+        s = self.surface
+        verts = s.global_vertex[s.tri[pair_a]]
+        stiffness = np.full(g.shape, self.penalty)
+        if self._pressure is not None and self._pressure_width > 0.0:
+            stiffness += self._pressure[verts].mean(axis=1) / self._pressure_width
+        peak = np.zeros(self.num_vertices)
+        for c in range(3):
+            np.maximum.at(peak, verts[:, c], stiffness * g)
+        self.comm.Allreduce(MPI.IN_PLACE, peak, op=MPI.MAX)
+        return peak
 
     # -- diagnostics ------------------------------------------------------------------------
 
