@@ -239,6 +239,16 @@ def test_max_penetration_of_sunk_block(integration):
     if integration == "area":
         edges = X[surface[[1, 2, 0]]] - X[surface]
         assert deepest["local_h"] == pytest.approx(np.linalg.norm(edges, axis=1).mean())
+        # the peak contact pressure k g round each vertex: eps 0.2 at most, 0 away from the
+        # contact (the boxes' bottoms); with pressures c and width w, k = eps + c / w
+        peak = op.peak_pressure()
+        assert MPI.COMM_WORLD.allgather(peak.tobytes()) == [peak.tobytes()] * MPI.COMM_WORLD.size
+        assert peak.max() == pytest.approx(0.2, rel=1e-8)
+        assert np.all(peak[X[:, 2] < 0.5] == 0.0) and np.all(peak >= 0.0)
+        op.set_pressure(np.full(op.num_vertices, 3.0), width=0.5)
+        assert op.peak_pressure().max() == pytest.approx((1.0 + 3.0 / 0.5) * 0.2, rel=1e-8)
+        assert np.allclose(op.peak_pressure(), 7.0 * peak)
+        op.set_pressure(None)
     # nothing penetrates: None
     u.x.array[:] = 0.0
     u.x.scatter_forward()
