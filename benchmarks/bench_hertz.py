@@ -22,6 +22,21 @@ contact radius from the second moment of the block's
 nodal contact forces (``<r^2> = 2 a^2 / 5`` for the Hertz pressure); Newton iterations; wall
 time of the load stepping (mesh, forms and compilation excluded).
 
+Also measured: the *pointwise* contact pressure at the pole, the pressure the model itself
+applies at a surface point: a penetrating surface point y gets the force density
+``(p(y) + eps g(y)) grad g`` per unit area, ``g`` the material depth of the other body at y
+(``ContactOperator.vertex_penetration``) and ``p`` the augmented Lagrangian's nodal pressure (0
+for the penalty), so the pressure there is ``eps g + p`` (times ``|grad g|``, which is
+1 + O(strain) since g is the reference depth: 1.02 at the pole at res 0.5). Both surfaces enter the
+other body, so the pressure transmitted at the pole is the sum of the block's pole vertex's
+value and the sphere's. The check of that sum: ``int (p + eps g) dA`` over every intersection
+polygon of each surface (``ContactOperator.pressure_moments``, exact) against the transmitted
+force, and the same integral from the vertex values alone (each times a third of the area of
+its boundary triangles off the symmetry planes), which agrees only where the vertex values
+represent the field. The peer's p_max is a different quantity again: the bulk stress traction
+``sigma(u) n . n`` at its contact facets' quadrature points (constant per facet with P1), not a
+contact-term pressure.
+
 Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]``.
 Prints figures; asserts nothing.
 """
@@ -221,6 +236,29 @@ def run(
     a_moment = np.sqrt(2.5 * np.sum(fz * r2) / np.sum(fz))
     transmitted = 4 * np.sum(f[sphere, 2])
     overlap = contact.max_penetration()
+
+    # pointwise contact pressure eps g + p at the penetrating boundary vertices, at the pole
+    # the block's vertex plus the sphere's (both at the origin in the reference configuration)
+    g = contact.vertex_penetration()
+    nodal_p = np.zeros(n) if contact.pressure is None else contact.pressure
+    pointwise = np.where(g > 0.0, contact.penalty * g + nodal_p, 0.0)
+    block_pole = np.flatnonzero(top)[pole]
+    on_sphere = np.flatnonzero(sphere)
+    sphere_pole = on_sphere[np.argmin(np.linalg.norm(X[on_sphere], axis=1))]
+    # int (p + eps g) dA over each surface's intersection polygons (the hat functions sum to 1)
+    gmom, amom = contact.pressure_moments()
+    carried = contact.penalty * gmom + nodal_p * amom
+    # the same integral from the vertex values alone (each times a third of the current area
+    # of its boundary triangles): it agrees with the exact one only if the vertex values
+    # represent the field between them
+    surface = contact.surface
+    tri_v = np.concatenate(comm.allgather(surface.global_vertex[surface.tri]))
+    # not the triangles on the symmetry planes, which the full bodies do not have
+    tri_v = tri_v[~np.any(np.all(np.abs(X[tri_v, :2]) < 1e-9 * RADIUS, axis=1), axis=1)]
+    x = X + _gather(V, u.x.array.reshape(-1, 3))
+    e1, e2 = x[tri_v[:, 1]] - x[tri_v[:, 0]], x[tri_v[:, 2]] - x[tri_v[:, 0]]
+    third = np.linalg.norm(np.cross(e1, e2), axis=1) / 6
+    lumped = pointwise * np.bincount(tri_v.ravel(), weights=np.repeat(third, 3), minlength=n)
     out = {
         "res": res,
         "method": method,
@@ -241,6 +279,14 @@ def run(
         "p_error": float(pressure.max()) / p0 - 1,
         "p_ref_pole": float(p_ref[pole]),
         "p_ref_error": float(pressure.max()) / float(p_ref[pole]) - 1,
+        "p_point_block": float(pointwise[block_pole]),
+        "p_point_sphere": float(pointwise[sphere_pole]),
+        "p_point": float(pointwise[block_pole] + pointwise[sphere_pole]),
+        "p_point_error": float(pointwise[block_pole] + pointwise[sphere_pole]) / p0 - 1,
+        "carried_block": 4 * float(carried[~sphere].sum()),
+        "carried_sphere": 4 * float(carried[sphere].sum()),
+        "lumped_block": 4 * float(lumped[~sphere].sum()),
+        "lumped_sphere": 4 * float(lumped[sphere].sum()),
         "a": a_theory,
         "a_moment": a_moment,
         "a_error": a_moment / a_theory - 1,
@@ -316,6 +362,17 @@ def main() -> None:
                         if "stages" in row
                         else ""
                     ),
+                    flush=True,
+                )
+                print(
+                    f"    pointwise pressure eps g + p at the pole {row['p_point']:.3f} (block "
+                    f"{row['p_point_block']:.3f} + sphere {row['p_point_sphere']:.3f}; "
+                    f"{row['p_point_error']:+.1%} of p0, peer "
+                    f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int (p + eps g) dA: block "
+                    f"{row['carried_block']:.4f} + sphere {row['carried_sphere']:.4f} = "
+                    f"{row['carried_block'] + row['carried_sphere']:.4f} (F {row['force']:.4f}); "
+                    f"from the vertex values: block {row['lumped_block']:.4f} + sphere "
+                    f"{row['lumped_sphere']:.4f}",
                     flush=True,
                 )
                 for load, penalty, its, ok in row.get("stages", []):

@@ -260,6 +260,84 @@ def test_max_penetration_of_sunk_block(integration):
     assert op.max_penetration() == 0.0 and op.deepest_contact() is None
 
 
+def _depth_at_points_brute_force(mesh, gathered, points, own):
+    """Reference for `ContactOperator.vertex_penetration`, independent of its tree and kernel:
+    the P1 material depth at each point, from a 4 x 4 barycentric solve against every
+    tetrahedron not holding the point's own vertex ``own`` (global numbers), the depth-deficient
+    ones (four vertices at depth 0) split around their centroid as the operator does, the
+    centroid at its exact reference distance to the boundary."""
+    from fenics_matdepth.depth import boundary_triangles, distance_to_triangles
+
+    X, x, depth, tets = (gathered[k] for k in ("X", "x", "depth", "tets"))
+    centroid_depth = distance_to_triangles(X[tets].mean(axis=1), boundary_triangles(mesh))
+    deficient = np.all(depth[tets] == 0.0, axis=1)
+    out = np.zeros(points.shape[0])
+    for i, (y, a) in enumerate(zip(points, own, strict=True)):
+        for k in np.flatnonzero(np.all(tets != a, axis=1)):
+            xt, dt = x[tets[k]], depth[tets[k]]
+            subs = [(xt, dt)]
+            if deficient[k]:
+                subs = []
+                for s in range(4):
+                    xs, ds = xt.copy(), dt.copy()
+                    xs[s], ds[s] = xt.mean(axis=0), centroid_depth[k]
+                    subs.append((xs, ds))
+            for xs, ds in subs:
+                lam = np.linalg.solve(np.vstack((xs.T, np.ones(4))), np.append(y, 1.0))
+                if lam.min() >= -1e-12:
+                    out[i] = max(out[i], float(lam @ ds))
+    return out
+
+
+@pytest.mark.parametrize("integration", ["area", "collocation"])
+def test_vertex_penetration(integration):
+    """The depth each boundary vertex reaches: by hand for a box sunk 0.2 into another, and
+    against a brute-force barycentric search (`_depth_at_points_brute_force`) for two boxes
+    that overlap with a smooth perturbation, the same on every rank."""
+    comm = MPI.COMM_WORLD
+    # the sunk box of test_max_penetration_of_sunk_block: the upper box's bottom vertex at
+    # (0.455, 0.51) lies, 0.2 down, in the lower box's cube column [1/3, 2/3]^2, whose top
+    # layer has depth 0 above and 1/3 below (the distance of (1/3 or 2/3, 1/3 or 2/3, 2/3) to
+    # the unit cube's faces): there the P1 depth is 1 - z, 0.2 exactly
+    xa, ca = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    xb, cb = _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0))
+    mesh = create_tetrahedral_mesh(comm, np.vstack((ca, cb + xa.shape[0])), np.vstack((xa, xb)))
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    op = ContactOperator(u, fm.material_depth(mesh), penalty=1.0, integration=integration)
+    X = op.surface.gathered()["X"]
+    upper = op.body_of_vertex[np.argmax(X[:, 2])]
+    n_owned = V.dofmap.index_map.size_local
+    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
+    u.x.array[: 3 * n_owned].reshape(-1, 3)[:, 2] = np.where(
+        op.body_of_vertex[glob] == upper, -0.2, 0.0
+    )
+    u.x.scatter_forward()
+    op.update()
+    g = op.vertex_penetration()
+    assert g.shape == (op.num_vertices,)
+    assert comm.allgather(g.tobytes()) == [g.tobytes()] * comm.size
+    vertex = np.flatnonzero(np.all(np.isclose(X, [0.455, 0.51, 1.0]), axis=1))
+    vertex = vertex[op.body_of_vertex[vertex] == upper]
+    assert vertex.size == 1 and g[vertex[0]] == pytest.approx(0.2, rel=1e-12)
+    # the deepest vertex is no deeper than the deepest polygon point; vertices above the
+    # common plane, and the lower box's below it, are in no tetrahedron of the other box
+    assert g.max() <= op.max_penetration() * (1 + 1e-12)
+    assert np.all(g[X[:, 2] > 1.0 + 1e-9] == 0.0) and np.all(g[X[:, 2] < 1.0 - 1e-9] == 0.0)
+
+    # general positions, deficient tetrahedra split (both boxes are 3 and 4 cells across)
+    mesh, V, u, op = _setup(comm, integration)
+    gathered = op.surface.gathered()
+    g = op.vertex_penetration()
+    boundary = np.flatnonzero(gathered["depth"] == 0.0)
+    expected = np.zeros(op.num_vertices)
+    expected[boundary] = _depth_at_points_brute_force(
+        mesh, gathered, gathered["x"][boundary], boundary
+    )
+    assert np.count_nonzero(expected > 0.0) >= 10
+    assert np.allclose(g, expected, rtol=0.0, atol=1e-12)
+
+
 def test_force_resultants_are_opposite_and_match_rigid_translation():
     """Net contact force on each body: the two bodies' are opposite (action = reaction), and
     the upper body's equals -dE/dt for a rigid translation t of that body (central differences

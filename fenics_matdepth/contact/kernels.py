@@ -1291,6 +1291,61 @@ def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
     return out
 
 
+#: A point counts as inside a tetrahedron when its barycentric coordinates are all at least
+#: ``-_POINT_INSIDE_TOL`` (dimensionless): a point on a face (a vertex on a symmetry plane, on the
+#: other body's boundary face) is then not lost to the rounding of ``lambda_0 = 1 - sum``.
+_POINT_INSIDE_TOL = 1e-12
+
+
+@njit(cache=True)
+def _point_depths(x, depth, tet, points, pair_point, pair_tet):
+    """Material depth ``g_K`` at points, per (point, tetrahedron) pair (length).
+
+    ``g_K(y) = sum_j lambda_j(y) d_j`` (as in the pair kernels) where the point y lies in K
+    (every barycentric coordinate ``>= -_POINT_INSIDE_TOL``), else 0. A split tetrahedron
+    (`_is_split`) gives the largest value over its sub-tetrahedra containing y (they agree up
+    to rounding: the split depth is continuous), not their sum as the collocation energy does
+    for a point on a face they share.
+
+    Args:
+        x, depth, tet: as `_area_pairs`.
+        points: (n, 3) the points (length).
+        pair_point, pair_tet: (np,) candidate pairs (row of ``points``, tetrahedron index).
+
+    Returns:
+        (np,) depth per pair.
+    """
+    out = np.zeros(pair_point.shape[0], dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
+    dt = np.empty(4, dtype=FLOAT)
+    grads = np.empty((4, 3), dtype=FLOAT)
+    lam = np.empty(4, dtype=FLOAT)
+    for p in range(pair_point.shape[0]):
+        q = pair_point[p]
+        k = pair_tet[p]
+        split = _is_split(tet, k)
+        best = 0.0
+        for s in range(4 if split else 1):
+            _gather_tet(x, depth, tet, k, s, split, xt, dt)
+            if _tet_gradients(xt, grads) == 0.0:
+                continue
+            total = 0.0
+            for j in range(1, 4):
+                lam[j] = (
+                    grads[j, 0] * (points[q, 0] - xt[0, 0])
+                    + grads[j, 1] * (points[q, 1] - xt[0, 1])
+                    + grads[j, 2] * (points[q, 2] - xt[0, 2])
+                )
+                total += lam[j]
+            lam[0] = 1.0 - total
+            if min(lam[0], lam[1], lam[2], lam[3]) < -_POINT_INSIDE_TOL:
+                continue
+            g = lam[0] * dt[0] + lam[1] * dt[1] + lam[2] * dt[2] + lam[3] * dt[3]
+            best = max(best, g)
+        out[p] = best
+    return out
+
+
 @njit(cache=True)
 def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess, p):
     """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).

@@ -38,6 +38,7 @@ from fenics_matdepth.contact.kernels import (
     _area_pairs_max_depth,
     _area_pairs_pressure_moments,
     _collocation_pairs,
+    _point_depths,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
@@ -421,6 +422,43 @@ class ContactOperator:
         g = self._pair_depths()[0]
         local = float(g.max()) if g.size else 0.0
         return self.comm.allreduce(local, op=MPI.MAX)
+
+    def vertex_penetration(self) -> np.ndarray:
+        """Material depth reached by each boundary vertex at the last update (collective).
+
+        For a boundary vertex a: ``g_K(x_a)``, the material depth at its current position of
+        the tetrahedron K (not one of its own) that contains it, i.e. how deep the vertex lies
+        in the other body (or, in self-contact, in another part of its own); 0 for a vertex in
+        no such tetrahedron and for every vertex off the boundary. Points on a face count as
+        inside (see ``_point_depths``).
+
+        The contact pressure the model applies at a penetrating surface point y is
+        ``eps g(y)``, plus the interpolated nodal pressure ``p(y)`` with the augmented
+        Lagrangian (the force density ``(p + eps g) grad g`` of area integration), so at a
+        boundary vertex with ``g_a > 0`` it is ``eps g_a + p_a``. Where two bodies meet, both
+        surfaces enter the other: the pressure transmitted across the interface is the sum of
+        the two surfaces' values at the same place.
+
+        Returns:
+            (num_vertices,) depths (L) in the global vertex numbering, the same on every rank.
+        """
+        s = self.surface
+        local = np.zeros(self.num_vertices, dtype=FLOAT)
+        # the boundary vertices of this rank's contact elements: the halo holds every
+        # tetrahedron near them
+        verts = np.unique(s.tri) if self.integration == "area" else s.nodes
+        if verts.size and s.tree is not None:
+            points = np.ascontiguousarray(s.x[verts])
+            # a hair of margin: a point on a tetrahedron's face stays a candidate whatever
+            # the rounding of the boxes
+            qa, qk = s.tree.query_boxes(points, points, margin=1e-12 * s.mean_edge)
+            keep = np.all(s.tets[qk] != verts[qa, None], axis=1)
+            qa, qk = qa[keep], qk[keep]
+            g = _point_depths(s.x, s.kernel_depth, s.kernel_tets, points, qa, qk)
+            np.maximum.at(local, s.global_vertex[verts[qa]], g)
+        out = np.empty_like(local)
+        self.comm.Allreduce(local, out, op=MPI.MAX)
+        return out
 
     def _pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This rank's pairs with their deepest material depth at the last update: ``(g,
