@@ -366,6 +366,14 @@ problem = fm.ContactProblem(
 # of every contact surface is within `al_tol_h` (a tenth) of the boundary's median edge. Its
 # solve replaces the problem's in `solve_load_steps`; a step that fails restores the pressures
 # it started from, and the pressures carry over from one step to the next.
+#
+# The pressure term is the quadratic one (`pressure_term="quadratic"`): the pressures stiffen
+# the penalty of each penetrating triangle, `eps + p / w` with `w` half the tolerance, and each
+# update sets them to the peak contact pressure the solve produced. With the linear term
+# (`p g`, Lagrange multipliers; `MATDEPTH_KNEE_AL_TERM=linear`) the pressures carried from the
+# last step held faces of thigh tissue lying flat on the femur at the energy's kink, and Newton's
+# method stalled at 58° whatever the step (docs/demos.md); the quadratic term has no kink, and
+# its pressures fall where a contact relaxes.
 
 # +
 h_boundary = stats["median_edge"]
