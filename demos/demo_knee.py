@@ -288,7 +288,7 @@ energy = energy + 0.5 * spring * u[2] ** 2 * ds(QUADRICEPS_CUT)
 # MPa/mm^2; 0 = off), see docs/demos.md
 damping_k = float(os.environ.get("MATDEPTH_KNEE_DAMPING", 0.0))
 if damping_k > 0.0:
-    damping_term, damping_c, damping_anchor = fm.damping_energy(u, dx, damping_k)
+    damping_term, damping_c, damping_anchor = fm.damping_energy(u, ufl.dx, damping_k)
     energy = energy + damping_term
 residual = ufl.derivative(energy, u, ufl.TestFunction(V))
 
