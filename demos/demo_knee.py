@@ -284,12 +284,6 @@ ds = ufl.Measure("ds", domain=domain, subdomain_data=quadriceps_cut)
 omitted_muscle = 250.0  # mm
 spring = 3.0 * 2.0 * (muscle["c10"] + muscle["c01"]) / omitted_muscle  # MPa/mm
 energy = energy + 0.5 * spring * u[2] ** 2 * ds(QUADRICEPS_CUT)
-# optional proximal damping of soft modes (`MATDEPTH_KNEE_DAMPING`, a stiffness per unit volume,
-# MPa/mm^2; 0 = off), see docs/demos.md
-damping_k = float(os.environ.get("MATDEPTH_KNEE_DAMPING", 0.0))
-if damping_k > 0.0:
-    damping_term, damping_c, damping_anchor = fm.damping_energy(u, ufl.dx, damping_k)
-    energy = energy + damping_term
 residual = ufl.derivative(energy, u, ufl.TestFunction(V))
 
 domain.topology.create_connectivity(tdim, tdim)
@@ -384,11 +378,9 @@ problem = fm.ContactProblem(
 # +
 h_boundary = stats["median_edge"]
 solver = problem
-if damping_k > 0.0:
-    solver = fm.RigidModeDamping(problem, damping_c, damping_anchor)
 augmented = None
 if al_tol_h > 0.0:
-    augmented = fm.AugmentedLagrangian(solver, tol_h=al_tol_h, h=h_boundary, pressure_term=al_term)
+    augmented = fm.AugmentedLagrangian(problem, tol_h=al_tol_h, h=h_boundary, pressure_term=al_term)
     solver = augmented
 # -
 
