@@ -46,7 +46,14 @@ with closest-point search, in the reference configuration: with P1 one value per
 same as here with ray-tracing; an older version of its Hertz demo took, commented out, the
 maximum over the second surface's (the block's top face) values.
 
-Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]``.
+With ``--pressure-term quadratic`` the augmented Lagrangian's pressure term is the C1 one
+(``AugmentedLagrangian(..., pressure_term="quadratic")``: stiffness ``eps + p_T / w``, ``p_T``
+a penetrating triangle's mean nodal pressure, ``w`` half the tolerance); the pointwise
+pressure is then ``(eps + p / w) g`` and its integral ``int (eps + p / w) g dA``, each with
+the vertex's nodal pressure in place of ``p_T`` (approximate).
+
+Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]
+[--pressure-term quadratic]``.
 Prints figures; asserts nothing.
 """
 
@@ -192,11 +199,12 @@ def run(
     factor: float,
     tol_delta: float,
     steps: int,
-    relaxation: float = 0.5,
+    relaxation: float | None = None,
     max_updates: int = 20,
     start_factor: float = 10.0,
     growth: float = 10.0,
     damping: bool = True,
+    pressure_term: str = "linear",
 ) -> dict:
     comm = MPI.COMM_WORLD
     hertz = _hertz_module()
@@ -251,8 +259,9 @@ def run(
         )
     if method == "augmented":
         solver = fm.AugmentedLagrangian(
-            solver, tol=tol_delta * delta, max_updates=max_updates, relaxation=relaxation
-        )
+            solver, tol=tol_delta * delta, max_updates=max_updates, relaxation=relaxation,
+            pressure_term=pressure_term,
+        )  # fmt: skip
     stages = []  # continuation: (load, penalty, Newton iterations, converged) of every stage
 
     def converged_step(t):
@@ -321,13 +330,22 @@ def run(
     # the block's vertex plus the sphere's (both at the origin in the reference configuration)
     g = contact.vertex_penetration()
     nodal_p = np.zeros(n) if contact.pressure is None else contact.pressure
-    pointwise = np.where(g > 0.0, contact.penalty * g + nodal_p, 0.0)
+    width = getattr(solver, "width", 0.0)
+    if width > 0.0:
+        # the quadratic pressure term: stiffness eps + p_T / w, with the vertex's own nodal
+        # pressure standing in for the triangle's mean p_T (approximate)
+        pointwise = np.where(g > 0.0, (contact.penalty + nodal_p / width) * g, 0.0)
+    else:
+        pointwise = np.where(g > 0.0, contact.penalty * g + nodal_p, 0.0)
     block_pole = np.flatnonzero(top)[pole]
     on_sphere = np.flatnonzero(sphere)
     sphere_pole = on_sphere[np.argmin(np.linalg.norm(X[on_sphere], axis=1))]
     # int (p + eps g) dA over each surface's intersection polygons (the hat functions sum to 1)
     gmom, amom = contact.pressure_moments()
-    carried = contact.penalty * gmom + nodal_p * amom
+    if width > 0.0:
+        carried = (contact.penalty + nodal_p / width) * gmom  # p_T as above: approximate
+    else:
+        carried = contact.penalty * gmom + nodal_p * amom
     # the same integral from the vertex values alone (each times a third of the current area
     # of its boundary triangles): it agrees with the exact one only if the vertex values
     # represent the field between them
@@ -378,6 +396,7 @@ def run(
         "a_error": a_moment / a_theory - 1,
     }
     if method == "augmented":
+        out["pressure_term"] = pressure_term
         out["updates"] = solver.total_updates
         out["overlap_tol"] = overlap / solver.tolerance
     if method == "continuation":
@@ -404,7 +423,19 @@ def main() -> None:
         "--tol", type=float, default=0.05, help="augmented: overlap tolerance / delta"
     )
     parser.add_argument("--steps", type=int, default=4)
-    parser.add_argument("--relaxation", type=float, default=0.5, help="augmented: Uzawa omega")
+    parser.add_argument(
+        "--relaxation",
+        type=float,
+        default=None,
+        help="augmented: Uzawa omega (default 0.5 with the linear pressure term, 1 quadratic)",
+    )
+    parser.add_argument(
+        "--pressure-term",
+        choices=["linear", "quadratic"],
+        default="linear",
+        help="augmented: the pressure term of AugmentedLagrangian (quadratic: C1, stiffness "
+        "eps + p / w with w half the tolerance)",
+    )
     parser.add_argument("--max-updates", type=int, default=20, help="augmented: per step")
     parser.add_argument(
         "--start-factor", type=float, default=10.0, help="continuation: first stage's factor"
@@ -416,6 +447,11 @@ def main() -> None:
     args = parser.parse_args()
     methods = ["penalty", "augmented"] if args.method == "both" else [args.method]
 
+    def label(row):
+        if row.get("pressure_term") == "quadratic":
+            return "augmented (quadratic)"
+        return row["method"]
+
     rows = []
     for res in args.res:
         for method in methods:
@@ -424,6 +460,7 @@ def main() -> None:
                 row = run(
                     res, method, factor, args.tol, args.steps, args.relaxation,
                     args.max_updates, args.start_factor, args.growth, not args.no_damping,
+                    args.pressure_term,
                 )  # fmt: skip
             except RuntimeError as err:
                 if MPI.COMM_WORLD.rank == 0:
@@ -432,7 +469,7 @@ def main() -> None:
             rows.append(row)
             if MPI.COMM_WORLD.rank == 0:
                 print(
-                    f"res {res:4.2f} {method:9s} {row['vertices']:6d} vertices "
+                    f"res {res:4.2f} {label(row):9s} {row['vertices']:6d} vertices "
                     f"{row['cells']:6d} cells  eps {row['penalty']:.4g} "
                     f"({row['factor']:g} E/h)  newton {row['newton']:3d}"
                     f"{'  updates ' + str(row['updates']) if 'updates' in row else ''}  "
@@ -455,11 +492,14 @@ def main() -> None:
                     ),
                     flush=True,
                 )
+                quadratic = row.get("pressure_term") == "quadratic"
+                density = "(eps + p_i / w) g" if quadratic else "eps g + p"
                 print(
-                    f"    pointwise pressure eps g + p at the pole {row['p_point']:.3f} (block "
+                    f"    pointwise pressure {density} at the pole {row['p_point']:.3f} (block "
                     f"{row['p_point_block']:.3f} + sphere {row['p_point_sphere']:.3f}; "
                     f"{row['p_point_error']:+.1%} of p0, peer "
-                    f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int (p + eps g) dA: block "
+                    f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int ({density}) dA"
+                    f"{' (p_i for p_T: approximate)' if quadratic else ''}: block "
                     f"{row['carried_block']:.4f} + sphere {row['carried_sphere']:.4f} = "
                     f"{row['carried_block'] + row['carried_sphere']:.4f} (F {row['force']:.4f}); "
                     f"from the vertex values: block {row['lumped_block']:.4f} + sphere "
