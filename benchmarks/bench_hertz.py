@@ -33,11 +33,27 @@ value and the sphere's. The check of that sum: ``int (p + eps g) dA`` over every
 polygon of each surface (``ContactOperator.pressure_moments``, exact) against the transmitted
 force, and the same integral from the vertex values alone (each times a third of the area of
 its boundary triangles off the symmetry planes), which agrees only where the vertex values
-represent the field. The peer's p_max is a different quantity again: the bulk stress traction
-``sigma(u) n . n`` at its contact facets' quadrature points (constant per facet with P1), not a
-contact-term pressure.
+represent the field.
 
-Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]``.
+Also measured, the peer's own measure, like for like: the normal traction of the bulk stress,
+``p = -sigma(u) n . n`` (``sigma = 2 mu eps(u) + lambda tr(eps(u)) I``, constant per P1 cell),
+``n`` the outward normal of a contact facet, in the cell under each facet; p_max from the
+stress is its largest value over the block's top face (n = +z, so ``p = -sigma_zz``), over all
+ranks, and the same over the sphere's curved surface (its own outward normal). dolfinx_contact
+(``python/dolfinx_contact/output.py``) evaluates ``sigma(u) n_x . n_contact`` at the contact
+facets' quadrature points, ``n_contact = -n_x`` with ray-tracing and the other surface's normal
+with closest-point search, in the reference configuration: with P1 one value per facet, the
+same as here with ray-tracing; an older version of its Hertz demo took, commented out, the
+maximum over the second surface's (the block's top face) values.
+
+With ``--pressure-term quadratic`` the augmented Lagrangian's pressure term is the C1 one
+(``AugmentedLagrangian(..., pressure_term="quadratic")``: stiffness ``eps + p_T / w``, ``p_T``
+a penetrating triangle's mean nodal pressure, ``w`` half the tolerance); the pointwise
+pressure is then ``(eps + p / w) g`` and its integral ``int (eps + p / w) g dA``, each with
+the vertex's nodal pressure in place of ``p_T`` (approximate).
+
+Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]
+[--pressure-term quadratic]``.
 Prints figures; asserts nothing.
 """
 
@@ -56,6 +72,7 @@ import numpy as np
 import ufl
 
 import fenics_matdepth as fm
+from fenics_matdepth.boundary import owned_exterior_facets
 from fenics_matdepth.depth import boundary_triangles, distance_to_triangles
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -116,6 +133,61 @@ def _hertz_nodal_pressure(tri, key, n, p0, a, subdivisions=24):
     return np.where(weight > 0, num / np.maximum(weight, 1e-300), 0.0)
 
 
+def _cell_stress(V, u, cells, mu, lmbda):
+    """The Cauchy stress ``sigma(u) = 2 mu eps(u) + lambda tr(eps(u)) I`` of the P1
+    displacement ``u`` in the local cells ``cells`` (constant on each), (n, 3, 3), from the
+    reference vertex coordinates: ``grad u`` solves ``(x_i - x_0) . grad u_a = u_ia - u_0a``."""
+    dofs = np.asarray(V.dofmap.list)[cells]
+    x = V.tabulate_dof_coordinates()[dofs]
+    values = u.x.array.reshape(-1, 3)[dofs]
+    grad = np.linalg.solve(x[:, 1:] - x[:, :1], values[:, 1:] - values[:, :1]).transpose(0, 2, 1)
+    strain = 0.5 * (grad + grad.transpose(0, 2, 1))
+    trace = np.trace(strain, axis1=1, axis2=2)
+    return 2 * mu * strain + lmbda * trace[:, None, None] * np.eye(3)
+
+
+def _owned_boundary_facets(V):
+    """The exterior facets this rank owns (each facet of the mesh on one rank): their cell
+    (local index), vertex coordinates (n, 3, 3) and outward unit normal (n, 3), reference
+    configuration. A tetrahedron's facet i is opposite its vertex i (the P1 dofs follow the
+    reference vertex order)."""
+    mesh = V.mesh
+    facets = owned_exterior_facets(mesh)
+    mesh.topology.create_connectivity(2, 3)
+    mesh.topology.create_connectivity(3, 2)
+    f2c = mesh.topology.connectivity(2, 3)
+    cell = np.asarray(f2c.array)[np.asarray(f2c.offsets)[facets]]
+    c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
+    opposite = np.argmax(c2f[cell] == facets[:, None], axis=1)
+    others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    dofs = np.asarray(V.dofmap.list)[cell]
+    X = V.tabulate_dof_coordinates()
+    tri = X[np.take_along_axis(dofs, others[opposite], axis=1)]
+    apex = X[dofs[np.arange(cell.size), opposite]]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    inward = np.einsum("ij,ij->i", normal, apex - tri[:, 0]) > 0.0
+    normal[inward] *= -1.0
+    return cell, tri, normal
+
+
+def _stress_pressure_max(comm, V, u, mu, lmbda, cell, tri, normal, select):
+    """The largest normal traction ``-sigma(u) n . n`` (compression positive) over the owned
+    boundary facets ``select`` (a mask of ``_owned_boundary_facets``'s), ``n`` the facet's
+    outward normal and sigma its cell's (constant for P1), over all ranks, and the radius
+    ``sqrt(x^2 + y^2)`` of that facet's centroid: (p, r), (0, nan) without facets."""
+    sigma = _cell_stress(V, u, cell[select], mu, lmbda)
+    n = normal[select]
+    p = -np.einsum("fi,fij,fj->f", n, sigma, n)
+    local = (-np.inf, np.nan)
+    if p.size:
+        i = int(np.argmax(p))
+        centroid = tri[select][i].mean(axis=0)
+        local = (float(p[i]), float(np.hypot(centroid[0], centroid[1])))
+    best = max(comm.allgather(local), key=lambda pr: pr[0])
+    return best if np.isfinite(best[0]) else (0.0, np.nan)
+
+
 def _gather(V, rows):
     n_owned = V.dofmap.index_map.size_local
     return np.concatenate(V.mesh.comm.allgather(np.asarray(rows)[:n_owned]))
@@ -127,11 +199,12 @@ def run(
     factor: float,
     tol_delta: float,
     steps: int,
-    relaxation: float = 0.5,
+    relaxation: float | None = None,
     max_updates: int = 20,
     start_factor: float = 10.0,
     growth: float = 10.0,
     damping: bool = True,
+    pressure_term: str = "linear",
 ) -> dict:
     comm = MPI.COMM_WORLD
     hertz = _hertz_module()
@@ -186,8 +259,9 @@ def run(
         )
     if method == "augmented":
         solver = fm.AugmentedLagrangian(
-            solver, tol=tol_delta * delta, max_updates=max_updates, relaxation=relaxation
-        )
+            solver, tol=tol_delta * delta, max_updates=max_updates, relaxation=relaxation,
+            pressure_term=pressure_term,
+        )  # fmt: skip
     stages = []  # continuation: (load, penalty, Newton iterations, converged) of every stage
 
     def converged_step(t):
@@ -237,17 +311,42 @@ def run(
     transmitted = 4 * np.sum(f[sphere, 2])
     overlap = contact.max_penetration()
 
+    # the peer's measure: the normal traction -sigma(u) n . n of the bulk stress on the contact
+    # facets, constant per facet for P1; the block's top face (n = +z) and the sphere's curved
+    # surface (off the symmetry planes and the flat top z = R)
+    u.x.scatter_forward()
+    cell, facet_x, normal = _owned_boundary_facets(V)
+
+    def on_plane(axis, value):
+        return np.all(np.abs(facet_x[:, :, axis] - value) < 1e-9 * RADIUS, axis=1)
+
+    block_face = on_plane(2, 0.0)  # the sphere touches z = 0 at its pole only
+    # (z > 0 with a margin: the block's top face lies at z = 0 up to rounding)
+    sphere_face = facet_x[:, :, 2].mean(axis=1) > 1e-9 * RADIUS
+    sphere_face &= ~(on_plane(0, 0.0) | on_plane(1, 0.0) | on_plane(2, RADIUS))
+    stress_block = _stress_pressure_max(comm, V, u, mu, lmbda, cell, facet_x, normal, block_face)
+    stress_sphere = _stress_pressure_max(comm, V, u, mu, lmbda, cell, facet_x, normal, sphere_face)
+
     # pointwise contact pressure eps g + p at the penetrating boundary vertices, at the pole
     # the block's vertex plus the sphere's (both at the origin in the reference configuration)
     g = contact.vertex_penetration()
     nodal_p = np.zeros(n) if contact.pressure is None else contact.pressure
-    pointwise = np.where(g > 0.0, contact.penalty * g + nodal_p, 0.0)
+    width = getattr(solver, "width", 0.0)
+    if width > 0.0:
+        # the quadratic pressure term: stiffness eps + p_T / w, with the vertex's own nodal
+        # pressure standing in for the triangle's mean p_T (approximate)
+        pointwise = np.where(g > 0.0, (contact.penalty + nodal_p / width) * g, 0.0)
+    else:
+        pointwise = np.where(g > 0.0, contact.penalty * g + nodal_p, 0.0)
     block_pole = np.flatnonzero(top)[pole]
     on_sphere = np.flatnonzero(sphere)
     sphere_pole = on_sphere[np.argmin(np.linalg.norm(X[on_sphere], axis=1))]
     # int (p + eps g) dA over each surface's intersection polygons (the hat functions sum to 1)
     gmom, amom = contact.pressure_moments()
-    carried = contact.penalty * gmom + nodal_p * amom
+    if width > 0.0:
+        carried = (contact.penalty + nodal_p / width) * gmom  # p_T as above: approximate
+    else:
+        carried = contact.penalty * gmom + nodal_p * amom
     # the same integral from the vertex values alone (each times a third of the current area
     # of its boundary triangles): it agrees with the exact one only if the vertex values
     # represent the field between them
@@ -279,6 +378,12 @@ def run(
         "p_error": float(pressure.max()) / p0 - 1,
         "p_ref_pole": float(p_ref[pole]),
         "p_ref_error": float(pressure.max()) / float(p_ref[pole]) - 1,
+        "p_stress": stress_block[0],
+        "p_stress_r": stress_block[1],
+        "p_stress_error": stress_block[0] / p0 - 1,
+        "p_stress_sphere": stress_sphere[0],
+        "p_stress_sphere_r": stress_sphere[1],
+        "p_stress_sphere_error": stress_sphere[0] / p0 - 1,
         "p_point_block": float(pointwise[block_pole]),
         "p_point_sphere": float(pointwise[sphere_pole]),
         "p_point": float(pointwise[block_pole] + pointwise[sphere_pole]),
@@ -292,6 +397,7 @@ def run(
         "a_error": a_moment / a_theory - 1,
     }
     if method == "augmented":
+        out["pressure_term"] = pressure_term
         out["updates"] = solver.total_updates
         out["overlap_tol"] = overlap / solver.tolerance
     if method == "continuation":
@@ -318,7 +424,19 @@ def main() -> None:
         "--tol", type=float, default=0.05, help="augmented: overlap tolerance / delta"
     )
     parser.add_argument("--steps", type=int, default=4)
-    parser.add_argument("--relaxation", type=float, default=0.5, help="augmented: Uzawa omega")
+    parser.add_argument(
+        "--relaxation",
+        type=float,
+        default=None,
+        help="augmented: Uzawa omega (default 0.5 with the linear pressure term, 1 quadratic)",
+    )
+    parser.add_argument(
+        "--pressure-term",
+        choices=["linear", "quadratic"],
+        default="linear",
+        help="augmented: the pressure term of AugmentedLagrangian (quadratic: C1, stiffness "
+        "eps + p / w with w half the tolerance)",
+    )
     parser.add_argument("--max-updates", type=int, default=20, help="augmented: per step")
     parser.add_argument(
         "--start-factor", type=float, default=10.0, help="continuation: first stage's factor"
@@ -329,6 +447,12 @@ def main() -> None:
     )
     args = parser.parse_args()
     methods = ["penalty", "augmented"] if args.method == "both" else [args.method]
+
+    def label(row):
+        if row.get("pressure_term") == "quadratic":
+            return "augmented (quadratic)"
+        return row["method"]
+
     rows = []
     for res in args.res:
         for method in methods:
@@ -337,6 +461,7 @@ def main() -> None:
                 row = run(
                     res, method, factor, args.tol, args.steps, args.relaxation,
                     args.max_updates, args.start_factor, args.growth, not args.no_damping,
+                    args.pressure_term,
                 )  # fmt: skip
             except RuntimeError as err:
                 if MPI.COMM_WORLD.rank == 0:
@@ -345,7 +470,7 @@ def main() -> None:
             rows.append(row)
             if MPI.COMM_WORLD.rank == 0:
                 print(
-                    f"res {res:4.2f} {method:9s} {row['vertices']:6d} vertices "
+                    f"res {res:4.2f} {label(row):9s} {row['vertices']:6d} vertices "
                     f"{row['cells']:6d} cells  eps {row['penalty']:.4g} "
                     f"({row['factor']:g} E/h)  newton {row['newton']:3d}"
                     f"{'  updates ' + str(row['updates']) if 'updates' in row else ''}  "
@@ -353,6 +478,10 @@ def main() -> None:
                     f"(block {row['force_block']:.4f})  overlap/delta "
                     f"{row['overlap_delta']:.3f}  p_max {row['p_max']:.3f} vs p0 {row['p0']:.3f}"
                     f" ({row['p_error']:+.1%}, peer {PEER_PMAX_ERROR.get(res, np.nan):+.1%})  "
+                    f"p_max from the stress -sigma n.n: block {row['p_stress']:.3f} "
+                    f"({row['p_stress_error']:+.1%}, r {row['p_stress_r']:.3f}), sphere "
+                    f"{row['p_stress_sphere']:.3f} ({row['p_stress_sphere_error']:+.1%}, r "
+                    f"{row['p_stress_sphere_r']:.3f})  "
                     f"a {row['a_moment']:.3f} vs {row['a']:.3f} ({row['a_error']:+.1%})  "
                     f"Hertz as nodal pressure at the pole {row['p_ref_pole']:.3f} "
                     f"({row['p_ref_pole'] / row['p0'] - 1:+.1%} of p0; p_max "
@@ -364,11 +493,14 @@ def main() -> None:
                     ),
                     flush=True,
                 )
+                quadratic = row.get("pressure_term") == "quadratic"
+                density = "(eps + p_i / w) g" if quadratic else "eps g + p"
                 print(
-                    f"    pointwise pressure eps g + p at the pole {row['p_point']:.3f} (block "
+                    f"    pointwise pressure {density} at the pole {row['p_point']:.3f} (block "
                     f"{row['p_point_block']:.3f} + sphere {row['p_point_sphere']:.3f}; "
                     f"{row['p_point_error']:+.1%} of p0, peer "
-                    f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int (p + eps g) dA: block "
+                    f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int ({density}) dA"
+                    f"{' (p_i for p_T: approximate)' if quadratic else ''}: block "
                     f"{row['carried_block']:.4f} + sphere {row['carried_sphere']:.4f} = "
                     f"{row['carried_block'] + row['carried_sphere']:.4f} (F {row['force']:.4f}); "
                     f"from the vertex values: block {row['lumped_block']:.4f} + sphere "
