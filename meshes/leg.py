@@ -31,9 +31,9 @@ conforming mesh (gmsh ``fragment``). Sliding interfaces are *not* shared: a gap 
 separates the distal femur from everything around it (the patella, the quadriceps, the thigh
 soft tissue), and the tibial plateau from the condyles (the joint space, a cavity bounded by
 the condyles, the plateau and the soft tissue around them, reaching past the plateau's
-posterior rim), and a recess of ``patella_recess`` round the patella's lower half (swept back
-into the femur's clearance): soft tissue glued to bone and pressed onto the femur there was
-crushed.
+posterior rim), and a recess of ``patella_recess`` round the patella up to
+``patella_recess_top`` (swept back into the femur's clearance): soft tissue glued to bone
+and pressed onto the femur there was crushed.
 Behind the knee the popliteal fossa is a hollow (a cylinder along ``x`` cut out of the back of
 the leg, lined with skin), and at its floor a crease (the popliteal crease: a slot of width
 ``2 * crease_half_width``, lined with skin) cuts into the back of the leg: where the skin folds
@@ -163,6 +163,10 @@ class LegGeometry:
             (was 8) empties the thigh tissue lateral to the patella's back that lay flat on the
             femur where the knee first stalled (docs/demos.md, the knee): from 0 degrees the
             coarse leg went on to 63.2 against 52.8 degrees with 8 mm (quadratic pressure term).
+        patella_recess_top: height of the recess's flat roof above the patella's centre
+            (``z``). At -2 (below the equator) the thigh tissue on the roof, between the
+            patella's upper back and the femur, was crushed and stalled Newton's method at
+            63.2 degrees (det F 0.20); at 8 the coarse leg passed 87 degrees.
         fat_pad_half_width: half width (``x``) of a box emptied between the patellar
             ligament and the femur, from the tibial plateau up to 12 mm below the patella's
             centre (default 0: none; the ligament itself stays), where a real knee has the
@@ -218,6 +222,7 @@ class LegGeometry:
     patellofemoral_space: float = 1.5
     patella_recess: float = 2.0
     patella_recess_depth: float = 14.0
+    patella_recess_top: float = 8.0
     fat_pad_half_width: float = 0.0
     fat_pad_y: tuple[float, float] = (10.0, 30.0)
     tendon_semi_axes: tuple[float, float] = (12.0, 5.0)
@@ -414,9 +419,10 @@ def build_leg_model(
         sweep = (b + g.patella_recess_depth) / b
         unit = fuse([(3, occ.addSphere(px, py, pz, 1.0)),
                      (3, occ.addCylinder(px, py - sweep, pz, 0.0, sweep, 0.0, 1.0))])  # fmt: skip
-        # cut a little below the patella's equator (through it, the mesher met intersecting
-        # facets)
-        above = (3, occ.addBox(px - 2, py - 2 - sweep, pz - 2.0 / c, 4, 4 + sweep, 2))
+        # cut off above patella_recess_top (through the equator exactly, the mesher met
+        # intersecting facets)
+        top = g.patella_recess_top / c
+        above = (3, occ.addBox(px - 2, py - 2 - sweep, pz + top, 4, 4 + sweep, 2))
         patella_recess = cut(unit, [above])
         occ.dilate(patella_recess, px, py, pz, a, b, c)
     if g.fat_pad_half_width > 0.0:
