@@ -246,34 +246,25 @@ class AugmentedLagrangian:
         self.contact.set_pressure(value, self.width)
         self._pressure = self.contact.pressure
 
-    def _set(self, pressure: np.ndarray) -> None:
-        self.pressure = pressure
-
     def update_pressure(self) -> float:
         """One Uzawa step at the current state (collective).
 
         Returns:
             The largest change of a nodal pressure, relative to the largest new pressure.
         """
-        new = np.zeros_like(self.pressure)
-        if self.width > 0.0:
+        if self.width > 0.0:  # towards the peak contact pressure round each vertex
             peak = self.contact.peak_pressure()
             touched = peak > 0.0
-            new[touched] = np.maximum(
-                0.0,
-                self.pressure[touched] + self.relaxation * (peak[touched] - self.pressure[touched]),
-            )
-        else:
+            step = peak[touched] - self.pressure[touched]
+        else:  # by the penalty pressure of the mean overlap
             gmom, amom = self.contact.pressure_moments()
             touched = amom > 0.0
-            new[touched] = np.maximum(
-                0.0,
-                self.pressure[touched]
-                + self.relaxation * self.contact.penalty * gmom[touched] / amom[touched],
-            )
+            step = self.contact.penalty * gmom[touched] / amom[touched]
+        new = np.zeros_like(self.pressure)
+        new[touched] = np.maximum(0.0, self.pressure[touched] + self.relaxation * step)
         scale = max(float(np.max(new, initial=0.0)), np.finfo(float).tiny)
         change = float(np.max(np.abs(new - self.pressure), initial=0.0)) / scale
-        self._set(new)
+        self.pressure = new
         return change
 
     def _absolute_tolerance(self, first_norm: float | None):
@@ -316,7 +307,7 @@ class AugmentedLagrangian:
                 # halve the last update and solve again from the state before it
                 halvings += 1
                 self.u.x.array[:] = previous[0]
-                self._set(0.5 * (previous[1] + self.pressure))
+                self.pressure = 0.5 * (previous[1] + self.pressure)
                 continue
             overlap = self.contact.max_penetration()
             record = UzawaUpdate(
@@ -341,7 +332,7 @@ class AugmentedLagrangian:
             np.concatenate(norms) if norms else np.empty(0), rejected, result.min_det_F,
         )  # fmt: skip
         if not converged:
-            self._set(start)
+            self.pressure = start
             if raise_on_failure:
                 raise RuntimeError(self.failure_message(out))
         return out

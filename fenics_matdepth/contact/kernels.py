@@ -1048,20 +1048,22 @@ def _area_pairs_augmented(
     offset = np.empty(3, dtype=FLOAT)
     acc_g = np.empty(21, dtype=FLOAT)
     acc_h = np.empty((21, 21), dtype=FLOAT)
-    zero = np.zeros(3, dtype=FLOAT)
+    quadratic = width > 0.0
     for p in range(npairs):
+        # linear term: the penalty, offset P / eps and a second term when a pressure is set;
+        # quadratic term: one term, the plain kernel at the pair's stiffness eps + p_mean / w
         has_pressure = False
         stiffness = penalty
         for a in range(3):
             v = tri[pair_tri[p], a]
-            offset[a] = pressure[v] / penalty
-            has_pressure = has_pressure or pressure[v] != 0.0
-            if width > 0.0:
+            if quadratic:
+                offset[a] = 0.0
                 stiffness += pressure[v] / (3.0 * width)
+            else:
+                offset[a] = pressure[v] / penalty
+                has_pressure = has_pressure or pressure[v] != 0.0
             for r in range(3):
                 xs[a, r] = x[v, r]
-        if width > 0.0:
-            has_pressure = False  # one term, the plain kernel at the pair's stiffness
         k = pair_tet[p]
         split = _is_split(tet, k)
         _zero_folded(21, want_grad, want_hess, acc_g, acc_h)
@@ -1073,12 +1075,8 @@ def _area_pairs_augmented(
                 if term == 1:
                     for a in range(4):
                         dt[a] = 0.0
-                if width > 0.0:
-                    es = _area_pair(xs, xt, dt, zero, stiffness, want_grad, want_hess, work,
-                                    grad, hess, p)  # fmt: skip
-                else:
-                    es = _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work,
-                                    grad, hess, p)  # fmt: skip
+                es = _area_pair(xs, xt, dt, offset, stiffness, want_grad, want_hess, work, grad,
+                                hess, p)  # fmt: skip
                 if es < 0.0:
                     break  # no polygon: neither term contributes
                 hit = True

@@ -327,12 +327,6 @@ class ContactOperator:
         """Nodal contact pressures (global vertex numbering, pressure units), or ``None``."""
         return self._pressure
 
-    @property
-    def pressure_width(self) -> float:
-        """``w`` of the quadratic pressure term (L), 0 for the linear one (see
-        :meth:`set_pressure`)."""
-        return self._pressure_width
-
     def set_pressure(self, pressure: np.ndarray | None, width: float = 0.0) -> None:
         """Set the nodal contact pressures of the augmented Lagrangian (or ``None``: plain
         penalty).
