@@ -286,7 +286,7 @@ class AugmentedLagrangian:
         start = self.pressure.copy()
         self.history = []
         norms: list[np.ndarray] = []
-        iterations, rejected, converged, reason = 0, 0, False, -1
+        iterations, rejected, converged, reason, shifted = 0, 0, False, -1, 0
         result = None
         previous = None  # (state, pressures) before the last update, to retry a failed solve
         halvings = 0
@@ -299,6 +299,7 @@ class AugmentedLagrangian:
                 first_norm = float(result.residual_norms[0])
             iterations += result.iterations
             rejected += result.rejected_states
+            shifted += result.shifted_steps
             norms.append(np.asarray(result.residual_norms))
             if not result.converged:
                 if previous is None or halvings >= MAX_UPDATE_HALVINGS:
@@ -330,6 +331,7 @@ class AugmentedLagrangian:
         out = SolveResult(
             converged, reason, iterations,
             np.concatenate(norms) if norms else np.empty(0), rejected, result.min_det_F,
+            shifted,
         )  # fmt: skip
         if not converged:
             self.pressure = start
@@ -454,7 +456,7 @@ class RigidModeDamping:
         """Damped solves until ``u`` settles, then one undamped solve (collective)."""
         comm = self.u.function_space.mesh.comm
         start = self.u.x.array.copy()
-        iterations, rejected, norms = 0, 0, []
+        iterations, rejected, norms, shifted = 0, 0, [], 0
         self._k.value = self.stiffness
         self.damped_solves = 0
         result = None
@@ -470,6 +472,7 @@ class RigidModeDamping:
                 self.damped_solves += 1
                 iterations += result.iterations
                 rejected += result.rejected_states
+                shifted += result.shifted_steps
                 norms.append(np.asarray(result.residual_norms))
                 r = result.residual_norms
                 if not result.converged:
@@ -492,12 +495,13 @@ class RigidModeDamping:
                     result = self.problem.solve(raise_on_failure=False)
                 iterations += result.iterations
                 rejected += result.rejected_states
+                shifted += result.shifted_steps
                 norms.append(np.asarray(result.residual_norms))
         finally:
             self._k.value = 0.0
         out = SolveResult(
             result.converged, result.reason, iterations, np.concatenate(norms), rejected,
-            result.min_det_F,
+            result.min_det_F, shifted,
         )  # fmt: skip
         if raise_on_failure and not out.converged:
             raise RuntimeError(out.failure_message())

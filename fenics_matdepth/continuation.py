@@ -190,6 +190,7 @@ class PenaltyContinuation:
         self.timings = {}
         norms: list[np.ndarray] = []
         iterations, rejected, converged, reason, min_det_F = 0, 0, False, -1, np.nan
+        shifted = 0
         last = None  # (state, penalty) of the last converged stage
         growth = self.growth
         penalty = min(self.start, self.target)
@@ -203,6 +204,7 @@ class PenaltyContinuation:
                         first_norm = float(result.residual_norms[0])
                     iterations += result.iterations
                     rejected += result.rejected_states
+                    shifted += result.shifted_steps
                     norms.append(np.asarray(result.residual_norms))
                     reason, min_det_F = result.reason, result.min_det_F
                     for key, seconds in getattr(self.problem, "timings", {}).items():
@@ -247,7 +249,7 @@ class PenaltyContinuation:
             self.u.x.array[:] = start_state
         out = SolveResult(
             converged, reason, iterations,
-            np.concatenate(norms) if norms else np.empty(0), rejected, min_det_F,
+            np.concatenate(norms) if norms else np.empty(0), rejected, min_det_F, shifted,
         )  # fmt: skip
         if raise_on_failure and not converged:
             raise RuntimeError(self.failure_message(out))

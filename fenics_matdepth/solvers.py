@@ -130,6 +130,18 @@ NAN_REASON = getattr(
 NO_PROGRESS_ITERATIONS = 3
 NO_PROGRESS_RTOL = 1e-10
 
+#: When a Newton step would climb the energy (the Jacobian is indefinite: the iterate is near
+#: a saddle of the energy, an unstable equilibrium), ContactProblem takes the step of
+#: ``J + mu I`` instead (a Hessian modification), mu starting at SHIFT_START times the mean
+#: absolute diagonal of J and growing SHIFT_GROWTH-fold until the factorisation has no
+#: negative pivot and the step goes downhill, at most SHIFT_TRIES factorisations. Measured on
+#: the knee at 90.6 deg (coarse leg): Newton sat at |F| = 3e-2 with one negative pivot and
+#: its step 470 mm long; 1e-6 removed the negative pivot and the energy fell by 0.012 N mm
+#: along the shifted step.
+SHIFT_START = 1e-6
+SHIFT_GROWTH = 10.0
+SHIFT_TRIES = 8
+
 #: NonlinearContactProblem halves a Newton step at most this many times while it would
 #: invert an element.
 MAX_STEP_HALVINGS = 30
@@ -164,6 +176,9 @@ class SolveResult:
         rejected_states: trial states rejected because an element inverted (det F <= 0) or the
             residual or energy was not finite (the step was shortened instead).
         min_det_F: smallest det F over the cells at the returned state.
+        shifted_steps: Newton steps taken with the shifted Jacobian ``J + mu I`` because the
+            Newton step would have climbed the energy (:class:`ContactProblem` with an energy
+            and a MUMPS solver; see SHIFT_START).
     """
 
     converged: bool
@@ -172,6 +187,7 @@ class SolveResult:
     residual_norms: np.ndarray
     rejected_states: int = 0
     min_det_F: float = np.nan
+    shifted_steps: int = 0
 
     def failure_message(self) -> str:
         """Why the solve failed, with the residual history."""
@@ -509,6 +525,9 @@ class ContactProblem:
         ksp.setFromOptions()
         # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
         self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
+        self._direct_solver = _is_mumps_direct(ksp.getPC())
+        #: Newton steps of the last solve taken with the shifted Jacobian (_shifted_direction)
+        self.shifted_steps = 0
         if ksp.getPC().getType() == "gamg":
             self.assembler.set_near_nullspace(rigid_body_modes(u.function_space))
         ksp.setPreSolve(self._ksp_started)
@@ -596,21 +615,71 @@ class ContactProblem:
             return reasons.DIVERGED_MAX_IT
         return reasons.ITERATING
 
-    def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> None:
+    def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> bool:
         """Line-search pre-check: the energy judges this step only if the step goes downhill
         and the Dirichlet dofs already sit on their values.
 
         SNES moves to ``x - lambda y`` with ``J y = F``; the energy's slope along that path is
-        ``-F . y``, negative when J is positive definite. Where the contact Hessian makes J
-        indefinite (deep, sharp overlaps), ``F . y`` can be negative: the Newton step climbs
-        the energy and no step length decreases it. That step is judged by ``|F|^2 / 2``
-        instead, which the Newton step always decreases for small enough steps. The same holds
-        while the step still moves Dirichlet dofs onto their values: prescribing a
-        displacement raises the energy, so only the residual norm can judge that step.
+        ``-F . y``, negative when J is positive definite. Where J is indefinite (deep, sharp
+        overlaps; an iterate near a saddle of the energy), ``F . y`` can be negative: the
+        Newton step climbs the energy and no step length decreases it. With the Dirichlet dofs
+        on their values and a direct solver, that step is replaced by the step of ``J + mu I``
+        (``_shifted_direction``), which goes downhill and is judged by the energy; otherwise it
+        is judged by ``|F|^2 / 2``, which the Newton step always decreases for small enough
+        steps. The same holds while the step still moves Dirichlet dofs onto their values:
+        prescribing a displacement raises the energy, so only the residual norm can judge that
+        step. Returns whether ``y`` was changed.
         """
-        self._merit_is_energy = (
-            self._energy_merit_allowed and self._bcs_met and y.dot(self._b) > 0.0
-        )
+        downhill = y.dot(self._b) > 0.0
+        if not downhill and self._bcs_met and self._shifted_direction(y):
+            self._merit_is_energy = True
+            return True
+        self._merit_is_energy = self._energy_merit_allowed and self._bcs_met and downhill
+        return False
+
+    def _shifted_direction(self, y: PETSc.Vec) -> bool:
+        """Overwrite ``y`` with ``(J + mu I)^-1 F`` for the smallest mu of SHIFT_START *
+        SHIFT_GROWTH^k (relative to the mean absolute diagonal of J) whose factorisation has no
+        negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective).
+        Returns False, leaving ``y``, where the linear solver is not MUMPS or no mu up to the
+        last try gives such a step."""
+        pc_type = self.snes.getKSP().getPC().getType()
+        if not (self._direct_solver and pc_type in ("lu", "cholesky")):
+            return False
+        A = self._A
+        diagonal = A.getDiagonal()
+        scale = diagonal.norm(PETSc.NormType.NORM_1) / max(diagonal.getSize(), 1)
+        diagonal.destroy()
+        B = A.copy()
+        ksp = PETSc.KSP().create(A.getComm())
+        trial = y.duplicate()
+        try:
+            ksp.setType("preonly")
+            ksp.setOperators(B)
+            pc = ksp.getPC()
+            pc.setType(pc_type)
+            pc.setFactorSolverType("mumps")
+            pc.setFactorSetUpSolverType()
+            factor = pc.getFactorMatrix()
+            factor.setMumpsIcntl(13, 1)  # negative pivots counted on the root node too
+            factor.setMumpsIcntl(14, LDLT_WORKSPACE_PERCENT)
+            mu, added = SHIFT_START * scale, 0.0
+            for _ in range(SHIFT_TRIES):
+                B.shift(mu - added)  # the matrix's new state makes the PC factorise again
+                added = mu
+                with self._watch("linear_solve"):
+                    ksp.solve(self._b, trial)
+                negative = factor.getMumpsInfog(12) if pc_type == "cholesky" else 0
+                if ksp.getConvergedReason() > 0 and negative == 0 and trial.dot(self._b) > 0.0:
+                    trial.copy(y)
+                    self.shifted_steps += 1
+                    return True
+                mu *= SHIFT_GROWTH
+            return False
+        finally:
+            trial.destroy()
+            ksp.destroy()
+            B.destroy()
 
     def _start_iteration(self, snes: PETSc.SNES, iteration: int) -> None:
         """Before each Newton step's Jacobian: switch the line search's merit function if the
@@ -669,6 +738,7 @@ class ContactProblem:
             while True:
                 self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                 self._merit_is_energy, self._last_norm = True, np.inf
+                self.shifted_steps = 0
                 self._energy_merit_allowed, self._bcs_met = True, False
                 self.assembler.rejected_states = 0
                 self._trial_valid = False  # the load may have changed since
@@ -693,7 +763,7 @@ class ContactProblem:
         reason = int(self.snes.getConvergedReason())
         result = SolveResult(
             reason > 0, reason, int(self.snes.getIterationNumber()), history,
-            self.assembler.rejected_states, self.min_det_F(),
+            self.assembler.rejected_states, self.min_det_F(), self.shifted_steps,
         )  # fmt: skip
         if raise_on_failure and not result.converged:
             raise RuntimeError(result.failure_message())

@@ -218,6 +218,56 @@ def test_convergence_test_stops_a_line_search_without_progress():
     assert problem.solve().converged
 
 
+def test_newton_steps_that_climb_the_energy_are_shifted_downhill():
+    """Near a saddle of the energy (an unstable equilibrium) the Newton step climbs the energy;
+    ContactProblem then steps with J + mu I (SHIFT_START) and reaches the minimum. Energy: a
+    soft block (no contact) in the double well c (u_x^2 - a^2)^2 + k (u_y^2 + u_z^2), started
+    at u_x = a / 10 next to the saddle u = 0; the minimum is u = (a, 0, 0). Plain Newton goes
+    to the saddle (checked: its first step has F . y < 0), so the test fails without the
+    shift."""
+    comm = MPI.COMM_WORLD
+    x, c = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    mesh = create_tetrahedral_mesh(comm, c, x)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    a, well, pin = 0.1, 1000.0, 10.0
+    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E, NU)
+    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    psi = fm.materials.neo_hookean(F_def, mu, kappa)
+    psi += well * (u[0] ** 2 - a**2) ** 2 + pin * (u[1] ** 2 + u[2] ** 2)
+    energy = psi * ufl.dx
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
+    problem = ContactProblem(residual, u, contact, energy=energy)
+    start = np.zeros_like(u.x.array)
+    start[0::3] = 0.1 * a
+    u.x.array[:] = start
+    # the plain Newton step from the start climbs the energy
+    x0 = u.x.petsc_vec.copy()
+    b = x0.duplicate()
+    problem.assembler.set_state(x0)
+    problem.assembler.residual(x0, b)
+    A = problem.assembler.matrix
+    problem.assembler.jacobian(A)
+    ksp = PETSc.KSP().create(comm)
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("mumps")
+    y = x0.duplicate()
+    ksp.solve(b, y)
+    assert b.dot(y) < 0.0
+    for obj in (ksp, y, b, x0):
+        obj.destroy()
+
+    result = problem.solve()
+    assert result.converged
+    assert np.allclose(u.x.array[0::3], a, rtol=1e-8)
+    assert np.allclose(u.x.array[1::3], 0.0, atol=1e-10)
+    assert np.allclose(u.x.array[2::3], 0.0, atol=1e-10)
+    assert result.shifted_steps >= 1
+
+
 def test_amg_default_above_the_size_threshold(monkeypatch):
     """Above AMG_MIN_DOFS the default linear solver is GMRES + GAMG with the rigid-body
     near-nullspace on the matrix; the contact solve reaches the LU solution. A user's own
