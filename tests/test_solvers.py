@@ -218,6 +218,45 @@ def test_convergence_test_stops_a_line_search_without_progress():
     assert problem.solve().converged
 
 
+def test_only_a_stalled_energy_step_hands_the_line_search_to_the_residual():
+    """The energy line search hands over to |F|^2 / 2 for the rest of a solve when an
+    iteration judged by the energy changed |F| by less than STALL_RTOL (the energy's rounding);
+    a slow step that |F|^2 / 2 judged (the Dirichlet dofs still moving) does not count. On the
+    knee, a start with the femur 0.5 mm off its fixed place lost the energy after three such
+    steps and crawled for 50 iterations."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+
+    class Snes:
+        norm = 1.0
+
+        def getFunctionNorm(self):
+            return self.norm
+
+        def getSolution(self):
+            return u.x.petsc_vec
+
+        def setJacobian(self, *args):
+            pass
+
+    snes = Snes()
+    problem._energy_merit_allowed, problem._last_norm = True, np.inf
+    problem._start_iteration(snes, 0)
+    slow = 1.0 - 0.1 * solvers.STALL_RTOL
+    for k, by_energy in enumerate((False, False, False), start=1):
+        problem._merit_is_energy = by_energy
+        snes.norm *= slow
+        problem._start_iteration(snes, k)
+    assert problem._energy_merit_allowed
+    problem._merit_is_energy = True
+    snes.norm *= slow
+    problem._start_iteration(snes, 4)
+    assert not problem._energy_merit_allowed
+
+
 def test_newton_steps_that_climb_the_energy_are_shifted_downhill():
     """Near a saddle of the energy (an unstable equilibrium) the Newton step climbs the energy;
     ContactProblem then steps with J + mu I (SHIFT_START) and reaches the minimum. Energy: a
