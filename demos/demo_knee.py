@@ -242,7 +242,11 @@ psi = {
     leg.TENDON: fm.materials.fiber_reinforced(F, a0=fibre, **tendon),
     leg.LIGAMENT: fm.materials.fiber_reinforced(F, a0=fibre, **tendon),
 }
-dx = ufl.Measure("dx", domain=domain, subdomain_data=cell_tags)
+# P1 displacements and piecewise-constant fibres make every energy density constant on each
+# tetrahedron, so one quadrature point integrates it exactly; UFL's estimate (a high degree for
+# these invariants) gave the same Newton iterations (the quick run's 2 steps of 18) with a
+# Jacobian 2.5 to 3.5 times slower to assemble (coarse leg: 0.35 s against 0.10 to 0.15 s).
+dx = ufl.Measure("dx", domain=domain, subdomain_data=cell_tags, metadata={"quadrature_degree": 1})
 energy = sum(density * dx(tag) for tag, density in psi.items())
 # -
 
