@@ -46,7 +46,8 @@
 # `MATDEPTH_DEMO_QUICK=1` runs the coarse leg for two steps (for the test suite);
 # `MATDEPTH_KNEE_RESOLUTION` (`coarse`, `default`, `fine` or a number), `MATDEPTH_KNEE_DEGREES`
 # and `MATDEPTH_KNEE_STEPS` override the resolution, the total flexion and the number of steps,
-# `MATDEPTH_KNEE_PREDICTOR=0` turns the step predictor off (below),
+# `MATDEPTH_KNEE_PREDICTOR` the step predictor (`extrapolate`, the default, `rotation`, or `0` for
+# none; below),
 # `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50),
 # `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 50),
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
@@ -96,7 +97,10 @@ quick = os.environ.get("MATDEPTH_DEMO_QUICK", "0") not in ("", "0")
 resolution = os.environ.get("MATDEPTH_KNEE_RESOLUTION", "coarse" if quick else "default")
 total_degrees = float(os.environ.get("MATDEPTH_KNEE_DEGREES", 6.0 if quick else 150.0))
 num_steps = int(os.environ.get("MATDEPTH_KNEE_STEPS", 2 if quick else 50))
-use_predictor = os.environ.get("MATDEPTH_KNEE_PREDICTOR", "1") not in ("", "0")
+predictor = os.environ.get("MATDEPTH_KNEE_PREDICTOR", "extrapolate")
+predictor = {"1": "extrapolate", "": "0"}.get(predictor, predictor)
+if predictor not in ("extrapolate", "rotation", "0"):
+    raise ValueError(f"MATDEPTH_KNEE_PREDICTOR is extrapolate, rotation or 0, not {predictor!r}")
 bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
 max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 50))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
@@ -309,20 +313,25 @@ total_angle = np.radians(total_degrees)
 # `ContactProblem` imposes the new Dirichlet values through the first Newton step, so the tibia's
 # 3° increment reaches the tissue glued to it through the linearised step and no element is
 # inverted before Newton starts. Newton still starts far from the answer: the shank has to turn
-# with the tibia. So each step starts from the last converged state with the increment of
-# rotation spread over the leg: vertices of the shank turn with the tibia, the thigh stays, and
-# across the knee the share of the rotation falls linearly from 1 at the tibial plateau to 0 at
-# the flexion axis. The constrained dofs are then put on their values (the femur's condyles reach
-# below the axis, and the shared rotation moved them up to 0.5 mm off their fixed place): while a
+# with the tibia. So each step starts from a prediction. Once two converged states are known,
+# the last increment is extrapolated (scaled to the new step): it carries what the tissue did in
+# the last step, the skin sliding and folding behind the knee included. The first step (and the
+# first after `--resume`) spreads the increment of rotation over the leg instead: vertices of
+# the shank turn with the tibia, the thigh stays, and across the knee the share of the rotation
+# falls linearly from 1 at the tibial plateau to 0 at the flexion axis. Measured from 96° (coarse
+# leg), a 3° step: rotated, Newton started at |F| = 1.6e4 with the calf's skin pushed into the
+# thigh's and failed after 50 iterations; extrapolated, it started at 1.3e3 and converged in 28.
+# Either way the constrained dofs are then put on their values (the femur's condyles reach below
+# the axis, and the shared rotation moved them up to 0.5 mm off their fixed place): while a
 # Dirichlet dof is off its value the line search cannot use the energy, and a step from such a
 # start crawled (1.5° at 94° failed after 50 iterations at |F| = 1.5e3; with the dofs put on
-# their values it converged in 25). Newton corrects the rest. (`MATDEPTH_KNEE_PREDICTOR=0` starts
-# each step from the last converged state instead.)
+# their values it converged in 25). Newton corrects the rest. (`MATDEPTH_KNEE_PREDICTOR=rotation`
+# always rotates; `0` starts each step from the last converged state.)
 
 # +
 X_all = V.tabulate_dof_coordinates()
 share = np.clip((0.0 - X_all[:, 2]) / (0.0 - geometry.plateau_top), 0.0, 1.0)
-last = {"u": u.x.array.copy(), "angle": 0.0}
+last = {"u": u.x.array.copy(), "angle": 0.0, "before": None}  # before: (u, angle) one step back
 
 
 def set_flexion(t: float) -> None:
@@ -330,7 +339,13 @@ def set_flexion(t: float) -> None:
     converged state (the rotation increment, shared out as described above)."""
     angle = t * total_angle
     tibia_rotation.set_angle(angle)
-    if use_predictor:
+    if predictor == "extrapolate" and last["before"] is not None:
+        u_before, angle_before = last["before"]
+        scale = (angle - last["angle"]) / (last["angle"] - angle_before)
+        u.x.array[:] = last["u"] + scale * (last["u"] - u_before)
+        dolfinx.fem.petsc.set_bc(u.x.petsc_vec, bcs)
+        u.x.scatter_forward()
+    elif predictor != "0":
         x = X_all + last["u"].reshape(-1, 3)
         step = np.empty_like(x)
         for fraction in np.unique(share):
@@ -727,6 +742,7 @@ def counting_set_flexion(t: float) -> None:
 
 
 def after_step(t: float) -> None:
+    last["before"] = (last["u"], last["angle"])
     last["u"], last["angle"] = u.x.array.copy(), t * total_angle
     for key, value in problem.timings.items():
         timing_totals[key] += value
