@@ -130,6 +130,14 @@ NAN_REASON = getattr(
 NO_PROGRESS_ITERATIONS = 3
 NO_PROGRESS_RTOL = 1e-10
 
+#: ... unless the residual had fallen below this fraction of the solve's initial residual
+#: first: then the solve has reached the residual's rounding floor and counts as converged
+#: (CONVERGED_SNORM_RELATIVE: the line search takes steps of no length). Measured on the knee
+#: (coarse leg) from 121 deg on: steps converged quadratically to 2e-9 ... 7e-8 N (forces of
+#: order 100 N in the leg) and stayed there, 1e-10 ... 3e-7 of their initial residuals, and were
+#: cut until the load stepping gave up.
+ROUNDING_FLOOR_RTOL = 1e-6
+
 #: When a Newton step would climb the energy (the Jacobian is indefinite: the iterate is near
 #: a saddle of the energy, an unstable equilibrium), ContactProblem takes the step of
 #: ``J + mu I`` instead (a Hessian modification), mu starting at SHIFT_START times the mean
@@ -588,7 +596,9 @@ class ContactProblem:
     def _converged(self, snes: PETSc.SNES, iteration: int, norms: tuple) -> int:
         """PETSc's default convergence test (absolute, relative and step tolerances, the
         iteration limit, divergence and NaN), plus a stop when the line search makes no
-        progress for NO_PROGRESS_ITERATIONS iterations (DIVERGED_LINE_SEARCH)."""
+        progress for NO_PROGRESS_ITERATIONS iterations: DIVERGED_LINE_SEARCH, or
+        CONVERGED_SNORM_RELATIVE where the residual had fallen below ROUNDING_FLOOR_RTOL of the
+        initial one (its rounding floor)."""
         reasons = PETSc.SNES.ConvergedReason
         xnorm, step_norm, fnorm = norms
         rtol, atol, stol, max_it = snes.getTolerances()
@@ -610,6 +620,8 @@ class ContactProblem:
         self._no_progress = self._no_progress + 1 if stalled else 0
         self._previous_norm = fnorm
         if self._no_progress >= NO_PROGRESS_ITERATIONS:
+            if fnorm <= ROUNDING_FLOOR_RTOL * self._initial_norm:
+                return reasons.CONVERGED_SNORM_RELATIVE
             return reasons.DIVERGED_LINE_SEARCH
         if iteration >= max_it:
             return reasons.DIVERGED_MAX_IT

@@ -190,7 +190,8 @@ def test_a_problem_never_solved_leaves_no_unused_petsc_option(child_env):
 def test_convergence_test_stops_a_line_search_without_progress():
     """ContactProblem's convergence test: PETSc's tolerances as SNES holds them, and a stop
     (DIVERGED_LINE_SEARCH) once NO_PROGRESS_ITERATIONS iterations in a row left the residual
-    norm unchanged, instead of running on to the iteration limit."""
+    norm unchanged, instead of running on to the iteration limit; a convergence
+    (CONVERGED_SNORM_RELATIVE) if that happens below ROUNDING_FLOOR_RTOL of the start."""
 
     from fenics_matdepth.solvers import NO_PROGRESS_ITERATIONS
 
@@ -208,6 +209,13 @@ def test_convergence_test_stops_a_line_search_without_progress():
     stuck = run([1.0, 0.5] + [0.5] * NO_PROGRESS_ITERATIONS)
     assert stuck[:-1] == [reasons.ITERATING] * (len(stuck) - 1)
     assert stuck[-1] == reasons.DIVERGED_LINE_SEARCH
+    # stuck at the rounding floor, far below the start: converged
+    floor = 0.1 * solvers.ROUNDING_FLOOR_RTOL
+    at_floor = run([1.0, 1e-3, floor] + [floor] * NO_PROGRESS_ITERATIONS)
+    assert at_floor[:-1] == [reasons.ITERATING] * (len(at_floor) - 1)
+    assert at_floor[-1] == reasons.CONVERGED_SNORM_RELATIVE
+    above = 10.0 * solvers.ROUNDING_FLOOR_RTOL
+    assert run([1.0, above] + [above] * NO_PROGRESS_ITERATIONS)[-1] == reasons.DIVERGED_LINE_SEARCH
     # slow progress is not a stall
     assert set(run([1.0] + [0.5 * (1.0 - 1e-6 * k) for k in range(10)])) == {reasons.ITERATING}
     assert run([1.0, 0.1 * rtol])[-1] == reasons.CONVERGED_FNORM_RELATIVE
