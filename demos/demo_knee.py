@@ -336,16 +336,17 @@ last = {"u": u.x.array.copy(), "angle": 0.0, "before": None}  # before: (u, angl
 
 def set_flexion(t: float) -> None:
     """Load factor t in [0, 1]: the tibia rotated by t * total_angle; u predicted from the last
-    converged state (the rotation increment, shared out as described above)."""
+    converged states (extrapolated, or the rotation increment shared out, as described above)
+    with the Dirichlet dofs on their values."""
     angle = t * total_angle
     tibia_rotation.set_angle(angle)
+    if predictor == "0":
+        return
     if predictor == "extrapolate" and last["before"] is not None:
         u_before, angle_before = last["before"]
         scale = (angle - last["angle"]) / (last["angle"] - angle_before)
         u.x.array[:] = last["u"] + scale * (last["u"] - u_before)
-        dolfinx.fem.petsc.set_bc(u.x.petsc_vec, bcs)
-        u.x.scatter_forward()
-    elif predictor != "0":
+    else:
         x = X_all + last["u"].reshape(-1, 3)
         step = np.empty_like(x)
         for fraction in np.unique(share):
@@ -354,8 +355,8 @@ def set_flexion(t: float) -> None:
                 x[rows], (0.0, 0.0, 0.0), (-1.0, 0.0, 0.0), fraction * (angle - last["angle"])
             )
         u.x.array[:] = last["u"] + step.reshape(-1)
-        dolfinx.fem.petsc.set_bc(u.x.petsc_vec, bcs)
-        u.x.scatter_forward()
+    dolfinx.fem.petsc.set_bc(u.x.petsc_vec, bcs)
+    u.x.scatter_forward()
 
 
 # -

@@ -533,7 +533,6 @@ class ContactProblem:
         ksp.setFromOptions()
         # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
         self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
-        self._direct_solver = _is_mumps_direct(ksp.getPC())
         #: Newton steps of the last solve taken with the shifted Jacobian (_shifted_direction)
         self.shifted_steps = 0
         if ksp.getPC().getType() == "gamg":
@@ -655,9 +654,10 @@ class ContactProblem:
         negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective).
         Returns False, leaving ``y``, where the linear solver is not MUMPS or no mu up to the
         last try gives such a step."""
-        pc_type = self.snes.getKSP().getPC().getType()
-        if not (self._direct_solver and pc_type in ("lu", "cholesky")):
+        solver_pc = self.snes.getKSP().getPC()
+        if not _is_mumps_direct(solver_pc):
             return False
+        pc_type = solver_pc.getType()
         A = self._A
         diagonal = A.getDiagonal()
         scale = diagonal.norm(PETSc.NormType.NORM_1) / max(diagonal.getSize(), 1)
