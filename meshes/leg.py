@@ -37,7 +37,10 @@ and pressed onto the femur there was crushed.
 Behind the knee the popliteal fossa is a hollow (a cylinder along ``x`` cut out of the back of
 the leg, lined with skin), and at its floor a crease (the popliteal crease: a slot of width
 ``2 * crease_half_width``, lined with skin) cuts into the back of the leg: where the skin folds
-onto itself when the knee bends.
+onto itself when the knee bends. Between the condyles' backs and the skin, at ``|x| <
+popliteal_space_half_width``, the popliteal space is left empty (in a real knee: fat, vessels
+and the tibial nerve, far softer than muscle): the calf tissue there would otherwise be rotated
+into the femoral shaft by deep flexion about the fixed axis.
 
 Facet tags: :data:`PROXIMAL_CUT` (the thigh's cut plane ``z = thigh_length``) and
 :data:`DISTAL_CUT` (the shank's cut plane ``z = -shank_length``).
@@ -192,6 +195,24 @@ class LegGeometry:
         crease_depth: how far the crease cuts into the back of the leg below the fossa's floor.
         crease_half_width: half the opening of the crease.
         crease_half_length: half its extent along ``x``.
+        popliteal_space_half_width: half width (``x``) of the popliteal space, a slot emptied
+            behind the knee between the heads of gastrocnemius and the hamstrings (0: none).
+            In a real knee it holds fat, the popliteal vessels and the tibial nerve, far softer
+            than muscle; here it is left out. Without it the tissue behind the knee at
+            ``x = 0`` was crushed at deep flexion: the calf tissue behind the tibial plateau
+            rotates about the flexion axis into the femoral shaft's place (anything more than
+            ``180 - 150 = 30`` degrees behind the shank's axis does by 150 degrees), and the
+            coarse leg stopped at 135.8 degrees with det F 0.047 in the calf tissue at
+            ``(0, -32, -5)`` and the thigh tissue between the condyles pressed into the femur.
+            The skin-fat layer stays: it covers the slot, lines the crease and folds into the
+            slot as the knee bends. Wider than the femoral shaft, so that the shaft never meets
+            its sides.
+        popliteal_space_angle: the slot's lower face, a plane through the flexion axis this
+            many degrees behind the shank's axis (degrees): the calf tissue behind it is
+            left out; the tissue in front of it, glued to the tibia, turns up against the
+            femur's back at ``180 - popliteal_space_angle`` degrees of flexion.
+        popliteal_space_reach: how far from the flexion axis that lower face reaches (mm).
+        popliteal_space_top: ``z`` of the slot's top, behind the femoral shaft.
     """
 
     thigh_length: float = 100.0
@@ -236,6 +257,10 @@ class LegGeometry:
     crease_depth: float = 10.0
     crease_half_width: float = 2.0
     crease_half_length: float = 20.0
+    popliteal_space_half_width: float = 14.0
+    popliteal_space_angle: float = 30.0
+    popliteal_space_reach: float = 55.0
+    popliteal_space_top: float = 50.0
 
     @property
     def plateau_top(self) -> float:
@@ -499,6 +524,28 @@ def build_leg_model(
         *g.joint_space_semi_axes,
     )  # fmt: skip
     cavity = fuse([*clearance, joint_space])
+    popliteal = []
+    if g.popliteal_space_half_width > 0.0:
+        # drawn in the y-z plane at x = -w and extruded along x: in front, the shaft's axis
+        # (the femur takes precedence); below, the plane popliteal_space_angle behind the
+        # shank's axis; behind, past the skin (the skin-fat layer takes precedence)
+        w = g.popliteal_space_half_width
+        a = math.radians(g.popliteal_space_angle)
+        y_low, z_low = (
+            -g.popliteal_space_reach * math.sin(a),
+            -g.popliteal_space_reach * math.cos(a),
+        )
+        corners = [
+            (g.femur_shaft_offset, g.popliteal_space_top),
+            (g.femur_shaft_offset, 0.0),
+            (0.0, 0.0),
+            (y_low, z_low),
+            (-100.0, z_low),
+            (-100.0, g.popliteal_space_top),
+        ]
+        points = [occ.addPoint(-w, y, z) for y, z in corners]
+        lines = [occ.addLine(points[i], points[(i + 1) % len(points)]) for i in range(len(points))]
+        popliteal = [extrude_face(lines, 2 * w, 0.0, 0.0)]
     quad_box = (3, occ.addBox(-100, g.femur_shaft_offset, g.quadriceps_start, 200, 100, 200))
     thigh_box = (3, occ.addBox(-100, -100, 0.0, 200, 200, 200))
 
@@ -514,6 +561,7 @@ def build_leg_model(
         "tendon": tendon,
         "ligament": ligament,
         "patella_recess": patella_recess,  # and the fat pad's box
+        "popliteal": popliteal,
         "outer": outer,
         "inner": inner,
         "quad_box": [quad_box],
@@ -535,7 +583,7 @@ def build_leg_model(
         for name, tag in (("femur", FEMUR), ("tibia", TIBIA), ("patella", PATELLA)):
             if name in names:
                 return tag
-        if "cavity" in names:
+        if "cavity" in names or ("popliteal" in names and "inner" in names):
             return None
         for name, tag in (("tendon", TENDON), ("ligament", LIGAMENT)):
             if name in names:
