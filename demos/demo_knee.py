@@ -49,7 +49,7 @@
 # `MATDEPTH_KNEE_PREDICTOR` the step predictor (`extrapolate`, the default, `rotation`, or `0` for
 # none; below),
 # `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50),
-# `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 50),
+# `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 100),
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
@@ -102,7 +102,7 @@ predictor = {"1": "extrapolate", "": "0"}.get(predictor, predictor)
 if predictor not in ("extrapolate", "rotation", "0"):
     raise ValueError(f"MATDEPTH_KNEE_PREDICTOR is extrapolate, rotation or 0, not {predictor!r}")
 bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
-max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 50))
+max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 100))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
@@ -168,6 +168,14 @@ spec.loader.exec_module(leg)
 #   patella's lower half now sits in a 2 mm recess swept back into the femur's clearance
 #   (`patella_recess`). Leaving out the tissue between the ligament and the femur as well
 #   (the infrapatellar fat pad's place, `fat_pad_half_width`) made it worse (`docs/demos.md`);
+# - *the tissue behind the knee at x = 0*: with muscle filling the whole back of the knee,
+#   the coarse leg stopped at 135.8°. The calf tissue behind the tibial plateau, swung round
+#   the fixed axis, arrived at the back of the femoral shaft (tissue more than 30° behind the
+#   shank's axis is rotated into the shaft's place by 150°), pressed the thigh tissue between
+#   the condyles into the femur and was itself crushed at the hinge (det F 0.047 at
+#   (0, -32, -5)). A real knee has the popliteal space there, between the heads of
+#   gastrocnemius and the hamstrings, holding fat, vessels and the tibial nerve; it is now
+#   left empty under the skin (`popliteal_space_half_width` 14 mm and its companions);
 # - *slivers*: the lowest det F sat in single flat tetrahedra (a tetrahedron whose vertices are
 #   nearly coplanar changes its volume by a large fraction for a small motion). The mesh is
 #   optimised harder (`Mesh.OptimizeThreshold` 0.45, three passes, then vertex relocation):
@@ -380,7 +388,10 @@ problem = fm.ContactProblem(
     petsc_options_prefix="knee_",
     # |F| below 1e-8 N is converged: the forces in the leg are of order 100 N, and the residual's
     # rounding floor reached 2e-9 to 4e-9 N at 121 deg, where the relative tolerance (1e-10 of
-    # the first residual) of a small step lay below it and the step was cut to nothing
+    # the first residual) of a small step lay below it and the step was cut to nothing.
+    # 100 iterations: past 148 deg a solve's residual fell to about 3e-2 N and jumped back to
+    # about 10 N several times as faces entered the contact (with their carried pressures), and
+    # with 50 the steps were cut to 0.1 deg and less; with 100 they converged
     petsc_options={"snes_max_it": max_newton, "snes_atol": 1e-8},
 )
 # -
