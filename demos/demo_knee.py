@@ -632,8 +632,11 @@ def add_frame(grid) -> None:
     global frame_camera
     plotter = pv.Plotter(window_size=(480, 480), off_screen=True)
     skin_view(plotter, grid, f"{frames_angles[-1]:.0f} deg")
-    plotter.camera.position = (420.0, -40.0, 0.0)
-    plotter.camera.focal_point = (0.0, -40.0, 0.0)
+    # one camera for every frame, far enough for the whole leg straight (210 mm tall) and the
+    # shank swung back (to y = -155 mm at 90 deg); at 420 mm the straight leg's ends and the
+    # folded shank's cut end at 150 deg were out of the frame
+    plotter.camera.position = (600.0, -30.0, 0.0)
+    plotter.camera.focal_point = (0.0, -30.0, 0.0)
     plotter.camera.up = (0.0, 0.0, 1.0)
     frames.append(plotter.screenshot(return_img=True))
     plotter.close()
