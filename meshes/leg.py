@@ -263,6 +263,19 @@ class LegGeometry:
     popliteal_space_top: float = 50.0
 
     @property
+    def popliteal_space_outline(self) -> list[tuple[float, float]]:
+        """Corners ``(y, z)`` of the popliteal space's outline in the y-z plane: in front, the
+        femoral shaft's axis (the femur takes precedence); below, the plane
+        ``popliteal_space_angle`` behind the shank's axis out to ``popliteal_space_reach``;
+        behind, past the skin (the skin-fat layer takes precedence)."""
+        a = math.radians(self.popliteal_space_angle)
+        y_low = -self.popliteal_space_reach * math.sin(a)
+        z_low = -self.popliteal_space_reach * math.cos(a)
+        front, top = self.femur_shaft_offset, self.popliteal_space_top
+        return [(front, top), (front, 0.0), (0.0, 0.0), (y_low, z_low), (-100.0, z_low),
+                (-100.0, top)]  # fmt: skip
+
+    @property
     def plateau_top(self) -> float:
         """``z`` of the tibial plateau: the joint space below the condyles is ``1.5 gap`` wide
         (wider than the clearance around the femur, so that the two do not touch)."""
@@ -526,23 +539,9 @@ def build_leg_model(
     cavity = fuse([*clearance, joint_space])
     popliteal = []
     if g.popliteal_space_half_width > 0.0:
-        # drawn in the y-z plane at x = -w and extruded along x: in front, the shaft's axis
-        # (the femur takes precedence); below, the plane popliteal_space_angle behind the
-        # shank's axis; behind, past the skin (the skin-fat layer takes precedence)
+        # drawn in the y-z plane at x = -w and extruded along x
         w = g.popliteal_space_half_width
-        a = math.radians(g.popliteal_space_angle)
-        y_low, z_low = (
-            -g.popliteal_space_reach * math.sin(a),
-            -g.popliteal_space_reach * math.cos(a),
-        )
-        corners = [
-            (g.femur_shaft_offset, g.popliteal_space_top),
-            (g.femur_shaft_offset, 0.0),
-            (0.0, 0.0),
-            (y_low, z_low),
-            (-100.0, z_low),
-            (-100.0, g.popliteal_space_top),
-        ]
+        corners = g.popliteal_space_outline
         points = [occ.addPoint(-w, y, z) for y, z in corners]
         lines = [occ.addLine(points[i], points[(i + 1) % len(points)]) for i in range(len(points))]
         popliteal = [extrude_face(lines, 2 * w, 0.0, 0.0)]

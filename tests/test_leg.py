@@ -12,6 +12,8 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
+from fenics_matdepth._compat import geometry_dofmap
+
 LEG_FILE = Path(__file__).resolve().parents[1] / "meshes" / "leg.py"
 
 
@@ -44,21 +46,13 @@ def test_the_popliteal_space_is_empty_of_tissue_and_covered_by_skin(leg):
     mesh, cell_tags, _ = leg.leg_mesh(MPI.COMM_SELF, "coarse", g)
     stats = leg.mesh_statistics(mesh)
     assert stats["inverted"] == 0, stats
-    nodes = mesh.geometry.dofmap
+    nodes = np.asarray(geometry_dofmap(mesh))
     centroids = mesh.geometry.x[nodes].mean(axis=1)
     body = np.empty(len(centroids), dtype=np.int32)
     body[cell_tags.indices] = cell_tags.values
     w = g.popliteal_space_half_width
     a = math.radians(g.popliteal_space_angle)
-    reach, top, front = g.popliteal_space_reach, g.popliteal_space_top, g.femur_shaft_offset
-    corners = [
-        (front, top),
-        (front, 0.0),
-        (0.0, 0.0),
-        (-reach * math.sin(a), -reach * math.cos(a)),
-        (-100.0, -reach * math.cos(a)),
-        (-100.0, top),
-    ]
+    corners = g.popliteal_space_outline
     in_slot = (np.abs(centroids[:, 0]) < w) & _inside_polygon(centroids[:, 1:], corners)
     soft = np.isin(body, [leg.QUADRICEPS, leg.TENDON, leg.LIGAMENT, leg.THIGH, leg.CALF])
     assert w > 0.0 and not np.any(in_slot & soft), centroids[in_slot & soft][:5]
