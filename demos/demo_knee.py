@@ -625,11 +625,9 @@ def skin_view(plotter, grid, title: str) -> None:
 
 
 straight = gathered_grid()
-frame_camera = None
 
 
 def add_frame(grid) -> None:
-    global frame_camera
     plotter = pv.Plotter(window_size=(480, 480), off_screen=True)
     skin_view(plotter, grid, f"{frames_angles[-1]:.0f} deg")
     # one camera for every frame, far enough for the whole leg straight (210 mm tall) and the
