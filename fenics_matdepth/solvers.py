@@ -665,6 +665,7 @@ class ContactProblem:
         B = A.copy()
         ksp = PETSc.KSP().create(A.getComm())
         trial = y.duplicate()
+        pc = factor = None
         try:
             ksp.setType("preonly")
             ksp.setOperators(B)
@@ -689,6 +690,12 @@ class ContactProblem:
                 mu *= SHIFT_GROWTH
             return False
         finally:
+            # the borrowed PC and factor go before their KSP: on more than one rank petsc4py
+            # defers the destruction of an object whose last reference is a Python wrapper to
+            # PETSc's garbage (freed only by PETSc.garbage_cleanup), and a PC kept by its
+            # wrapper past ksp.destroy() held a MUMPS factorisation there per shifted step
+            # (the knee on 2 ranks grew by GBs)
+            del pc, factor
             trial.destroy()
             ksp.destroy()
             B.destroy()

@@ -4,6 +4,7 @@ close a gap, the NewtonSolver problem, load stepping, and contact added to a use
 from __future__ import annotations
 
 import itertools
+import re
 import subprocess
 import sys
 import warnings
@@ -265,13 +266,29 @@ def test_only_a_stalled_energy_step_hands_the_line_search_to_the_residual():
     assert not problem._energy_merit_allowed
 
 
-def test_newton_steps_that_climb_the_energy_are_shifted_downhill():
+def petsc_garbage_entries(comm: MPI.Comm, capfd) -> int:
+    """How many PETSc objects wait in PETSc's garbage on ``comm`` (all ranks; collective;
+    a mesh's communicator is its own, not MPI.COMM_WORLD).
+
+    On more than one rank petsc4py does not destroy an object whose last reference was a
+    Python wrapper: it queues it until ``PETSc.garbage_cleanup``, so an object the library
+    drops without ``destroy()`` lingers there (serially it is destroyed at once)."""
+    capfd.readouterr()
+    PETSc.garbage_view(comm)
+    printed = capfd.readouterr().out  # rank 0 prints every rank's table
+    count = sum(int(n) for n in re.findall(r"Total entries: (\d+)", printed))
+    return comm.bcast(count, root=0)
+
+
+def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     """Near a saddle of the energy (an unstable equilibrium) the Newton step climbs the energy;
     ContactProblem then steps with J + mu I (SHIFT_START) and reaches the minimum. Energy: a
     soft block (no contact) in the double well c (u_x^2 - a^2)^2 + k (u_y^2 + u_z^2), started
     at u_x = a / 10 next to the saddle u = 0; the minimum is u = (a, 0, 0). Plain Newton goes
     to the saddle (checked: its first step has F . y < 0), so the test fails without the
-    shift."""
+    shift. The shifted steps' solver objects (a KSP, its PC and the MUMPS factorisation) are
+    released: on 2 ranks nothing is left in PETSc's garbage (a PC left there per shifted step
+    held its factorisation, and the knee's memory grew by GBs)."""
     comm = MPI.COMM_WORLD
     x, c = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     mesh = create_tetrahedral_mesh(comm, c, x)
@@ -307,12 +324,14 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill():
     for obj in (ksp, y, b, x0):
         obj.destroy()
 
+    PETSc.garbage_cleanup(mesh.comm)
     result = problem.solve()
     assert result.converged
     assert np.allclose(u.x.array[0::3], a, rtol=1e-8)
     assert np.allclose(u.x.array[1::3], 0.0, atol=1e-10)
     assert np.allclose(u.x.array[2::3], 0.0, atol=1e-10)
     assert result.shifted_steps >= 1
+    assert petsc_garbage_entries(mesh.comm, capfd) == 0
 
 
 def test_amg_default_above_the_size_threshold(monkeypatch):
