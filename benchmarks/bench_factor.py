@@ -76,6 +76,7 @@ def factorise(M: PETSc.Mat, ordering: int, kind: str = "lu") -> tuple[float, flo
     tic = time.process_time()
     ksp.setUp()
     again = time.process_time() - tic
+    del pc  # before its KSP: on several ranks a PC outliving it waits in PETSc's garbage
     ksp.destroy()
     return first, again
 
