@@ -210,19 +210,6 @@ class SolveResult:
         )
 
 
-def _release_petsc_garbage(comm: MPI.Comm) -> None:
-    """Free the PETSc objects waiting in PETSc's garbage on ``comm`` (collective).
-
-    On more than one rank petsc4py does not destroy a parallel object when its last Python
-    reference goes (a dropped problem's SNES, matrix and factorisation; objects a script
-    forgot to ``destroy()``): destroying is collective, and Python frees objects at moments
-    that may differ between ranks, so petsc4py queues them until this call. The problems call
-    it where every rank is at the same point: when one is created and at the start of each
-    solve. Serially nothing is queued and this does nothing.
-    """
-    PETSc.garbage_cleanup(comm)
-
-
 class _WeakCallback:
     """A bound method handed to PETSc as a callback without keeping its object alive.
 
@@ -230,8 +217,8 @@ class _WeakCallback:
     bound method there made a reference cycle through a C object, which Python's garbage
     collector cannot see, so no ContactProblem was ever freed (nor its matrices and MUMPS
     factorisation: a notebook re-running a cell, or a script solving problems in a loop, grew
-    without bound). The callback holds its object weakly; the SNES goes with the object (its
-    only owner), so the callback is not called after the object is gone.
+    without bound). The callback holds its object weakly; the object's ``__del__`` destroys the
+    SNES, so the callback is never called after the object is gone.
     """
 
     def __init__(self, method: typing.Callable):
@@ -516,7 +503,6 @@ class ContactProblem:
         petsc_options: dict | None = None,
     ):
         _check_problem_inputs(u, contact, bcs)
-        _release_petsc_garbage(u.function_space.mesh.comm)  # e.g. a problem dropped before
         self.u = u
         self.contact = contact
         self.bcs = list(bcs)
@@ -792,7 +778,6 @@ class ContactProblem:
             raise_on_failure: raise ``RuntimeError`` (with the residual history) when SNES does
                 not converge; otherwise return the result with ``converged=False``.
         """
-        _release_petsc_garbage(self.u.function_space.mesh.comm)
         start = self.u.x.petsc_vec.copy()
         try:
             while True:
@@ -829,6 +814,12 @@ class ContactProblem:
             raise RuntimeError(result.failure_message())
         return result
 
+    def __del__(self):
+        for obj in ("snes", "_b", "_x", "_x_trial", "_b_trial"):
+            if getattr(self, obj, None) is not None:
+                getattr(self, obj).destroy()
+        if getattr(self, "assembler", None) is not None:
+            self.assembler.destroy()
 
 
 class NonlinearContactProblem(NewtonSolverProblemBase):
