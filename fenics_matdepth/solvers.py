@@ -18,7 +18,6 @@ import dataclasses
 import os
 import time
 import typing
-import weakref
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -210,27 +209,6 @@ class SolveResult:
         )
 
 
-class _WeakCallback:
-    """A bound method handed to PETSc as a callback without keeping its object alive.
-
-    PETSc keeps the callbacks of a SNES or KSP alive with it, and a problem keeps its SNES: a
-    bound method there made a reference cycle through a C object, which Python's garbage
-    collector cannot see, so no ContactProblem was ever freed (nor its matrices and MUMPS
-    factorisation: a notebook re-running a cell, or a script solving problems in a loop, grew
-    without bound). The callback holds its object weakly; the object's ``__del__`` destroys the
-    SNES, so the callback is never called after the object is gone.
-    """
-
-    def __init__(self, method: typing.Callable):
-        self._method = weakref.WeakMethod(method)
-
-    def __call__(self, *args):
-        method = self._method()
-        if method is None:
-            raise ReferenceError("the problem this PETSc callback belongs to was freed")
-        return method(*args)
-
-
 class _Stopwatch:
     """Accumulates wall time per key: ``with watch("key"): ...``."""
 
@@ -397,7 +375,7 @@ class ContactAssembler:
 
     def destroy(self) -> None:
         """Release the PETSc objects (collective)."""
-        for obj in (self.matrix, self._scratch, self.near_nullspace):
+        for obj in (self.matrix, self._scratch):
             if obj is not None:
                 obj.destroy()
 
@@ -543,15 +521,13 @@ class ContactProblem:
             # read once now: MUMPS reads it at the first factorisation, and a problem that
             # never factorises would otherwise leave it for PETSc to report as unused at exit
             opts.getInt(self.prefix + "mat_mumps_icntl_14")
-        # the SNES and KSP hold their callbacks: weakly bound, so that the problem can be freed
-        self._jacobian_callback = _WeakCallback(self._jacobian)
-        self.snes.setFunction(_WeakCallback(self._residual), self._b)
-        self.snes.setJacobian(self._jacobian_callback, self._A, self._A)
-        self.snes.setUpdate(_WeakCallback(self._start_iteration))
-        self.snes.setConvergenceTest(_WeakCallback(self._converged))
+        self.snes.setFunction(self._residual, self._b)
+        self.snes.setJacobian(self._jacobian, self._A, self._A)
+        self.snes.setUpdate(self._start_iteration)
+        self.snes.setConvergenceTest(self._converged)
         if self._energy is not None:
-            self.snes.setObjective(_WeakCallback(self._objective))
-            self.snes.setLineSearchPreCheck(_WeakCallback(self._check_direction))
+            self.snes.setObjective(self._objective)
+            self.snes.setLineSearchPreCheck(self._check_direction)
         self.snes.setFromOptions()
         ksp = self.snes.getKSP()
         ksp.setFromOptions()
@@ -561,8 +537,8 @@ class ContactProblem:
         self.shifted_steps = 0
         if ksp.getPC().getType() == "gamg":
             self.assembler.set_near_nullspace(rigid_body_modes(u.function_space))
-        ksp.setPreSolve(_WeakCallback(self._ksp_started))
-        ksp.setPostSolve(_WeakCallback(self._ksp_finished))
+        ksp.setPreSolve(self._ksp_started)
+        ksp.setPostSolve(self._ksp_finished)
 
     @property
     def _A(self) -> PETSc.Mat:
@@ -756,7 +732,7 @@ class ContactProblem:
         self._set_state(x)
 
         def register(A: PETSc.Mat) -> None:
-            snes.setJacobian(self._jacobian_callback, A, A)
+            snes.setJacobian(self._jacobian, A, A)
 
         self.assembler.rebuild_matrix_if_needed(register)
 
