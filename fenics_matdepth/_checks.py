@@ -121,18 +121,21 @@ def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
 
     # Flat cells; folded-over cells: the opposite vertices of two cells sharing a face must
     # lie on opposite sides of the face's plane (one pass in numba, _cell_quality).
-    mesh.topology.create_connectivity(2, 3)
-    mesh.topology.create_connectivity(3, 2)
-    f2c = mesh.topology.connectivity(2, 3)
+    from fenics_matdepth.boundary import face_table
+
+    table = face_table(mesh)
+    if table.overshared:
+        message = (
+            f"{table.overshared} faces are shared by more than two tetrahedra (duplicated or "
+            "overlapping cells): remove the duplicate cells, or re-mesh"
+        )
+    collective_error(comm, message)
     nodes = np.asarray(geometry_dofmap(mesh), dtype=np.int64).reshape(-1, 4)
-    c2f = np.asarray(mesh.topology.connectivity(3, 2).array, dtype=np.int64).reshape(-1, 4)
     num_owned = mesh.topology.index_map(3).size_local
     flat, first_flat, folded, first_folded = _cell_quality(
         np.asarray(x_all, dtype=np.float64),
         nodes,
-        c2f,
-        np.asarray(f2c.offsets, dtype=np.int64),
-        np.asarray(f2c.array, dtype=np.int64),
+        table.neighbour,
         num_owned,
         DEGENERATE_VOLUME_RATIO,
     )
@@ -154,7 +157,7 @@ def check_mesh_quality(mesh: dolfinx.mesh.Mesh) -> None:
 
 
 @njit(cache=True)
-def _cell_quality(x, nodes, c2f, f2c_offsets, f2c, num_owned, ratio):
+def _cell_quality(x, nodes, neighbour, num_owned, ratio):
     """(number of flat owned cells, the first, number of folded-over faces, a cell of the
     first) over the local cells: a cell is flat when 6 |volume| <= 6 ratio (longest edge)^3; a
     face shared by two local cells is folded over when their vertices opposite it lie on the
@@ -179,15 +182,12 @@ def _cell_quality(x, nodes, c2f, f2c_offsets, f2c, num_owned, ratio):
             if num_flat == 0:
                 first_flat = c
             num_flat += 1
-    for c in range(c2f.shape[0]):
+    for c in range(neighbour.shape[0]):
         for i in range(4):
-            f = c2f[c, i]
-            if f2c_offsets[f + 1] - f2c_offsets[f] != 2 or f2c[f2c_offsets[f]] != c:
+            across = neighbour[c, i]
+            if across < 0 or across // 4 < c:
                 continue  # an exterior face, or the pair is tested from its first cell
-            other = f2c[f2c_offsets[f] + 1]
-            j = 0
-            while c2f[other, j] != f:
-                j += 1
+            other, j = across // 4, across % 4
             # the face's vertices: those of c other than i
             q0, q1, q2 = nodes[c, (i + 1) % 4], nodes[c, (i + 2) % 4], nodes[c, (i + 3) % 4]
             ux, uy, uz = x[q1, 0] - x[q0, 0], x[q1, 1] - x[q0, 1], x[q1, 2] - x[q0, 2]
@@ -206,12 +206,11 @@ def _cell_quality(x, nodes, c2f, f2c_offsets, f2c, num_owned, ratio):
 def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     """Global vertex indices (topology numbering) of all exterior triangles, on every rank."""
     from fenics_matdepth._mpi import allgather_rows
-    from fenics_matdepth.boundary import owned_exterior_facets
+    from fenics_matdepth.boundary import FACE_VERTICES, face_table
 
-    facets = owned_exterior_facets(mesh)
-    mesh.topology.create_connectivity(2, 0)
-    f2v = np.asarray(mesh.topology.connectivity(2, 0).array).reshape(-1, 3)
-    local = f2v[facets]
+    table = face_table(mesh)
+    cell, face = table.exterior.T
+    local = table.cell_vertices[cell[:, None], FACE_VERTICES[face]]
     imap = mesh.topology.index_map(0)
     glob = imap.local_to_global(local.ravel().astype(np.int32)).reshape(-1, 3)
     return allgather_rows(mesh.comm, glob.astype(np.int64))

@@ -113,6 +113,16 @@ def test_zero_volume_tetrahedron(layout):
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
+def test_duplicated_tetrahedron(layout):
+    """A cell given twice: its faces are shared by three cells."""
+    X, cells = _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    cells = np.vstack((cells, cells[7:8]))
+    mesh = _mesh(cells, X, layout)
+    with pytest.raises(ValueError, match="shared by more than two tetrahedra"):
+        fm.material_depth(mesh)
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
 def test_inverted_tetrahedra(layout):
     """The centre vertex of a 2 x 2 x 2 box moved out through the top: the tetrahedra around
     it fold over their neighbours (negative volume relative to the rest of the mesh)."""

@@ -137,6 +137,65 @@ def test_parallel_equals_serial():
     assert d_ser.x.array.max() > 0.2
 
 
+def _global_face_rows(mesh, cells, faces):
+    """Sorted global topology vertices of faces given as (cell, local face), gathered."""
+    from fenics_matdepth._mpi import allgather_rows
+    from fenics_matdepth.boundary import FACE_VERTICES
+
+    c2v = np.asarray(mesh.topology.connectivity(3, 0).array).reshape(-1, 4)
+    local = c2v[np.asarray(cells)[:, None], FACE_VERTICES[np.asarray(faces)]]
+    glob = mesh.topology.index_map(0).local_to_global(local.ravel().astype(np.int32))
+    rows = np.sort(np.asarray(glob, dtype=np.int64).reshape(-1, 3), axis=1)
+    return allgather_rows(mesh.comm, rows)
+
+
+@pytest.mark.parametrize(
+    "ghost_mode", [dolfinx.mesh.GhostMode.none, dolfinx.mesh.GhostMode.shared_facet]
+)
+def test_face_table_equals_dolfinx_facets(ghost_mode):
+    """The face table (no DOLFINx facets) finds the same exterior faces as DOLFINx's facet
+    entities, each on one rank only, and the same neighbour across every local face; on a
+    box cut into two bodies glued along a plane (the interface is no boundary)."""
+    from fenics_matdepth.boundary import face_table
+
+    mesh = dolfinx.mesh.create_box(
+        MPI.COMM_WORLD,
+        [np.zeros(3), np.array([1.0, 0.8, 0.6])],
+        [6, 5, 4],
+        dolfinx.mesh.CellType.tetrahedron,
+        ghost_mode=ghost_mode,
+    )
+    table = face_table(mesh)  # before DOLFINx creates any facet
+    assert face_table(mesh) is table  # kept with the mesh
+    assert table.overshared == 0
+    ours = _global_face_rows(mesh, *table.exterior.T)
+    assert ours.shape[0] == 2 * (6 * 5 + 6 * 4 + 5 * 4) * 2  # two triangles per square
+    assert np.unique(ours, axis=0).shape[0] == ours.shape[0]  # each face on one rank
+
+    mesh.topology.create_connectivity(2, 3)
+    mesh.topology.create_connectivity(3, 2)
+    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+    facets = facets[facets < mesh.topology.index_map(2).size_local]
+    f2c = mesh.topology.connectivity(2, 3)
+    c2f = np.asarray(mesh.topology.connectivity(3, 2).array).reshape(-1, 4)
+    cell = np.asarray(f2c.array)[np.asarray(f2c.offsets)[facets]]
+    face = np.argmax(c2f[cell] == facets[:, None], axis=1)
+    theirs = _global_face_rows(mesh, cell, face)
+    np.testing.assert_array_equal(np.unique(ours, axis=0), np.unique(theirs, axis=0))
+
+    # neighbours: across face i of cell c lies the other local cell of DOLFINx's facet
+    offsets, links = np.asarray(f2c.offsets), np.asarray(f2c.array)
+    for c in range(c2f.shape[0]):
+        for i in range(4):
+            f = c2f[c, i]
+            others = [o for o in links[offsets[f] : offsets[f + 1]] if o != c]
+            across = table.neighbour[c, i]
+            if others:
+                assert across // 4 == others[0] and c2f[across // 4, across % 4] == f
+            else:
+                assert across == -1
+
+
 # ------------------------------------------------------------------------------------------
 # bad input
 # ------------------------------------------------------------------------------------------
