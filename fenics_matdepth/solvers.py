@@ -375,7 +375,7 @@ class ContactAssembler:
 
     def destroy(self) -> None:
         """Release the PETSc objects (collective)."""
-        for obj in (self.matrix, self._scratch):
+        for obj in (self.matrix, self._scratch, self.near_nullspace):
             if obj is not None:
                 obj.destroy()
 
@@ -790,12 +790,36 @@ class ContactProblem:
             raise RuntimeError(result.failure_message())
         return result
 
-    def __del__(self):
+    def destroy(self) -> None:
+        """Release the problem's PETSc objects now: the SNES with its linear solver and
+        factorisation, the vectors and the matrix (collective: call it on every rank at the
+        same point). The problem cannot solve afterwards; ``u`` and the contact operator are
+        the caller's and stay as they are.
+
+        Needed wherever problems are made again and again (a notebook cell run twice, a loop
+        over cases): the SNES holds the problem's own methods as its callbacks, a reference
+        cycle through PETSc's C objects that Python's garbage collector cannot see, so a
+        problem nobody refers to is never freed, with its MUMPS factorisation, until it is
+        destroyed. Destroying the SNES drops the callbacks, and the problem is freed as usual.
+        ``with ContactProblem(...) as problem:`` calls it at the end of the block.
+        """
         for obj in ("snes", "_b", "_x", "_x_trial", "_b_trial"):
             if getattr(self, obj, None) is not None:
                 getattr(self, obj).destroy()
         if getattr(self, "assembler", None) is not None:
             self.assembler.destroy()
+
+    def __enter__(self) -> ContactProblem:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.destroy()
+
+    def __del__(self):
+        # explicit destroys here are safe serially only: on several ranks Python frees an
+        # object at different moments on different ranks, and destroying a parallel MUMPS
+        # factorisation is collective (petsc4py then queues the objects in PETSc's garbage)
+        self.destroy()
 
 
 class NonlinearContactProblem(NewtonSolverProblemBase):
@@ -972,11 +996,27 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
             raise RuntimeError(result.failure_message())
         return result
 
-    def __del__(self):
+    def destroy(self) -> None:
+        """Release the problem's PETSc objects (matrix, vectors) and its reference to the
+        attached solver (collective). As for :meth:`ContactProblem.destroy`: the solver holds
+        the problem's methods and the problem its solver, a cycle Python cannot free, so a
+        problem made again and again must be destroyed (or used in a ``with`` block); then
+        it is freed once neither it nor its solver is referred to. The solver cannot solve
+        this problem afterwards."""
         if getattr(self, "assembler", None) is not None:
             self.assembler.destroy()
         if getattr(self, "_trial", None) is not None:
             self._trial.destroy()
+        self._solver = None
+
+    def __enter__(self) -> NonlinearContactProblem:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.destroy()
+
+    def __del__(self):
+        self.destroy()
 
 
 # -- load stepping -----------------------------------------------------------------------------

@@ -3,11 +3,14 @@ close a gap, the NewtonSolver problem, load stepping, and contact added to a use
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import itertools
 import re
 import subprocess
 import sys
 import warnings
+import weakref
 from pathlib import Path
 
 from mpi4py import MPI
@@ -331,6 +334,39 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     assert np.allclose(u.x.array[1::3], 0.0, atol=1e-10)
     assert np.allclose(u.x.array[2::3], 0.0, atol=1e-10)
     assert result.shifted_steps >= 1
+    assert petsc_garbage_entries(mesh.comm, capfd) == 0
+
+
+@pytest.mark.parametrize("how", ["destroy", "with"])
+@pytest.mark.parametrize("kind", ["snes", "newton"])
+def test_a_destroyed_problem_is_freed(capfd, how, kind):
+    """A problem released with destroy() (or a with block) is freed once nothing refers to
+    it, with its solver objects: its callbacks kept it alive before (a reference cycle
+    through PETSc's or DOLFINx's C++ objects that Python's garbage collector cannot see), so
+    a notebook cell run again kept every earlier problem and its factorisation. On 2 ranks
+    nothing is left in PETSc's garbage."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    PETSc.garbage_cleanup(mesh.comm)
+    if kind == "snes":
+        problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+        solver = None
+    else:
+        problem = NonlinearContactProblem(residual, u, contact, bcs=bcs)
+        solver = problem.newton_solver()
+    with problem if how == "with" else contextlib.nullcontext():
+        if solver is None:
+            assert problem.solve().converged
+        else:
+            assert solver.solve(u)[1]
+    if how == "destroy":
+        problem.destroy()
+    alive = weakref.ref(problem)
+    del problem, solver
+    gc.collect()
+    assert alive() is None
     assert petsc_garbage_entries(mesh.comm, capfd) == 0
 
 
