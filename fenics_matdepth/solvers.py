@@ -432,7 +432,26 @@ def _check_problem_inputs(u, contact, bcs) -> None:
             )
 
 
-class ContactProblem:
+class _Releasable:
+    """``destroy()`` at the end of a ``with`` block, and when Python frees the object. A
+    problem is freed only once ``destroy()`` has broken its solver's reference cycle (or if its
+    construction failed before), so the call from ``__del__`` has, as a rule, nothing left to
+    release: no collective call runs at a moment that differs between the ranks."""
+
+    def destroy(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.destroy()
+
+    def __del__(self):
+        self.destroy()
+
+
+class ContactProblem(_Releasable):
     """Nonlinear problem F(u) + dE_contact/du = 0 solved with PETSc SNES.
 
     The Dirichlet values are imposed through the Newton step (see :class:`ContactAssembler`):
@@ -809,20 +828,8 @@ class ContactProblem:
         if getattr(self, "assembler", None) is not None:
             self.assembler.destroy()
 
-    def __enter__(self) -> ContactProblem:
-        return self
 
-    def __exit__(self, *exc) -> None:
-        self.destroy()
-
-    def __del__(self):
-        # explicit destroys here are safe serially only: on several ranks Python frees an
-        # object at different moments on different ranks, and destroying a parallel MUMPS
-        # factorisation is collective (petsc4py then queues the objects in PETSc's garbage)
-        self.destroy()
-
-
-class NonlinearContactProblem(NewtonSolverProblemBase):
+class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
     """F(u) + dE_contact/du = 0 as a problem for ``dolfinx.nls.petsc.NewtonSolver``.
 
     The contact Jacobian needs a matrix with the contact couplings in its sparsity pattern,
@@ -1008,15 +1015,6 @@ class NonlinearContactProblem(NewtonSolverProblemBase):
         if getattr(self, "_trial", None) is not None:
             self._trial.destroy()
         self._solver = None
-
-    def __enter__(self) -> NonlinearContactProblem:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.destroy()
-
-    def __del__(self):
-        self.destroy()
 
 
 # -- load stepping -----------------------------------------------------------------------------
