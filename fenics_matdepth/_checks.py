@@ -302,7 +302,7 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
     Raises:
         ValueError: on every rank, naming the problem and the fix.
     """
-    from fenics_matdepth.contact.kernels import _area_pairs_active, _area_pairs_max_depth
+    from fenics_matdepth.contact.kernels import _area_pairs_max_depth, _intersecting
     from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
     surface = contact.surface  # held numbering (see fenics_matdepth.contact.surface)
@@ -331,7 +331,7 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
     lo, hi = element_boxes(X, tri)
     pa, pk = tree.query_boxes(lo, hi)
     pa, pk = exclude_shared_vertex_pairs(tri, held_tets, pa, pk)
-    active, _, _, _ = _area_pairs_active(X, depth, tri, tets, pa, pk, contact.penalty, False, False)
+    active = _intersecting(X, tri, tets, pa, pk)
     pa, pk = pa[active], pk[active]
     g = _area_pairs_max_depth(X, depth, tri, tets, pa, pk)
     tolerance = OVERLAP_DEPTH_RTOL * 10.0 * contact.margin

@@ -954,21 +954,6 @@ def _intersecting(x, tri, tet, pair_tri, pair_tet):
     return active
 
 
-@njit(cache=True)
-def _area_pairs_active(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
-    """Like `_area_pairs`, but returns only the intersecting pairs (saves memory).
-
-    Returns:
-        ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs
-        (shapes ``(na,)``, ``(na, 21)``, ``(na, 21, 21)``; empty first axis when not wanted).
-    """
-    active = _intersecting(x, tri, tet, pair_tri, pair_tet)
-    energy, grad, hess = _area_pairs(
-        x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, want_grad, want_hess
-    )
-    return active, energy, grad, hess
-
-
 # ------------------------------------------------------------------------------------------
 # Augmented Lagrangian (paper section 8.3): nodal contact pressures on the penetrating surface
 # ------------------------------------------------------------------------------------------
@@ -1091,23 +1076,6 @@ def _area_pairs_augmented(
         _store_folded(grad, hess, p, 21, want_grad, want_hess, acc_g, acc_h)
         energy[p] = e if hit else 0.0
     return energy, grad, hess
-
-
-@njit(cache=True)
-def _area_pairs_augmented_active(
-    x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, width, want_grad, want_hess
-):
-    """Like `_area_pairs_augmented`, for the intersecting pairs only (as `_area_pairs_active`).
-
-    Returns:
-        ``active (na,)`` indices into the pair arrays, then energy, grad, hess of those pairs.
-    """
-    active = _intersecting(x, tri, tet, pair_tri, pair_tet)
-    energy, grad, hess = _area_pairs_augmented(
-        x, depth, tri, tet, pair_tri[active], pair_tet[active], penalty, pressure, width,
-        want_grad, want_hess,
-    )  # fmt: skip
-    return active, energy, grad, hess
 
 
 @njit(cache=True)

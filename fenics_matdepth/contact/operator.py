@@ -33,11 +33,12 @@ from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.contact import assembly, pairs
 from fenics_matdepth.contact.kernels import (
-    _area_pairs_active,
-    _area_pairs_augmented_active,
+    _area_pairs,
+    _area_pairs_augmented,
     _area_pairs_max_depth,
     _area_pairs_pressure_moments,
     _collocation_pairs,
+    _intersecting,
     _point_depths,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
@@ -182,19 +183,20 @@ class ContactOperator:
         if self.integration == "area":
             # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
             # still comes out over its 7 original vertices
+            active = self._intersecting_pairs()
+            pa, pk = self._pair_a[active], self._pair_k[active]
             if self._pressure is None:
-                active, energy, grad, hess = _area_pairs_active(
-                    s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
-                    self.penalty, want_grad, want_hess,
+                energy, grad, hess = _area_pairs(
+                    s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
+                    want_grad, want_hess,
                 )  # fmt: skip
             else:
                 # the pressures of the held vertices (the numbering changes with the halo)
                 held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
-                active, energy, grad, hess = _area_pairs_augmented_active(
-                    s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a, self._pair_k,
-                    self.penalty, held_pressure, self._pressure_width, want_grad, want_hess,
+                energy, grad, hess = _area_pairs_augmented(
+                    s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
+                    held_pressure, self._pressure_width, want_grad, want_hess,
                 )  # fmt: skip
-            pa, pk = self._pair_a[active], self._pair_k[active]
         else:
             energy, grad, hess = _collocation_pairs(
                 s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[self._pair_a],
@@ -207,6 +209,18 @@ class ContactOperator:
             out["active"] = active
         self._cache[key] = out
         return out
+
+    def _intersecting_pairs(self) -> np.ndarray:
+        """Indices of the candidate pairs whose intersection is not empty, kept until the next
+        :meth:`update` moves the bodies: the energy (line search), gradient (residual) and
+        Hessian (Jacobian) passes at one state share the test (24 ms of 188k candidates on the
+        40k-tetrahedron press)."""
+        if "intersecting" not in self._cache:
+            s = self.surface
+            self._cache["intersecting"] = _intersecting(
+                s.x, s.tri, s.kernel_tets, self._pair_a, self._pair_k
+            )
+        return self._cache["intersecting"]
 
     def energy(self) -> float:
         """Contact energy at the last :meth:`update` (collective; energy unit F L)."""
