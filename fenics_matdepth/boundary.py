@@ -6,7 +6,7 @@ for contact), and the exact coordinates of the P1 dofs.
 
 The faces are found by :func:`face_table`, from the cells' vertices alone, not by DOLFINx's
 facet entities: creating those (``create_entities(2)``) took 7.3 s of the 11.3 s of the
-material depth of a 1M-vertex box, the face table 0.5 s (``docs/spatial.md``).
+material depth of a 1M-vertex box, the face table 1.1 s (``docs/spatial.md``).
 """
 
 from __future__ import annotations
