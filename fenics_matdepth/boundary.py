@@ -4,9 +4,10 @@ What a rank reads off a dolfinx mesh and its P1 spaces: the exterior faces it ow
 triangles (as coordinates, gathered, for the distance to the boundary; or as local P1 dofs,
 for contact), and the exact coordinates of the P1 dofs.
 
-The faces are found by :func:`face_table`, from the cells' vertices alone, not by DOLFINx's
-facet entities: creating those (``create_entities(2)``) took 7.3 s of the 11.3 s of the
-material depth of a 1M-vertex box, the face table 1.1 s (``docs/spatial.md``).
+The faces are found by :func:`~fenics_matdepth.boundary.face_table`, from the cells' vertices
+alone, not by DOLFINx's facet entities: creating those (``create_entities(2)``) took 7.3 s of
+the 11.3 s of the material depth of a 1M-vertex box, the face table 1.1 s
+(``docs/spatial.md``).
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ def _face_neighbours(c2v, num_vertices):
 
 
 class FaceTable(typing.NamedTuple):
-    """The faces of a rank's tetrahedra (see :func:`face_table`).
+    """The faces of a rank's tetrahedra (see :func:`~fenics_matdepth.boundary.face_table`).
 
     Attributes:
         cell_vertices: (num local cells, 4) local topology vertices of every local cell
@@ -177,7 +178,7 @@ def owned_exterior_facets(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     Every exterior facet is owned by exactly one rank, so each boundary triangle is handled
     once across the ranks. These are DOLFINx facet entities (created here if the mesh has
     none yet), for facet tags and boundary conditions; the package itself uses
-    :func:`face_table`.
+    :func:`~fenics_matdepth.boundary.face_table`.
     """
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim - 1, tdim)
