@@ -206,14 +206,12 @@ def _cell_quality(x, nodes, neighbour, num_owned, ratio):
 def _gathered_boundary_triangles(mesh: dolfinx.mesh.Mesh) -> np.ndarray:
     """Global vertex indices (topology numbering) of all exterior triangles, on every rank."""
     from fenics_matdepth._mpi import allgather_rows
-    from fenics_matdepth.boundary import FACE_VERTICES, face_table
+    from fenics_matdepth.boundary import face_table, global_face_vertices
 
     table = face_table(mesh)
-    cell, face = table.exterior.T
-    local = table.cell_vertices[cell[:, None], FACE_VERTICES[face]]
-    imap = mesh.topology.index_map(0)
-    glob = imap.local_to_global(local.ravel().astype(np.int32)).reshape(-1, 3)
-    return allgather_rows(mesh.comm, glob.astype(np.int64))
+    return allgather_rows(
+        mesh.comm, global_face_vertices(mesh, table.cell_vertices, table.exterior)
+    )
 
 
 def check_manifold_boundary(mesh: dolfinx.mesh.Mesh) -> None:

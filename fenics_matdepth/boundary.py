@@ -29,6 +29,7 @@ __all__ = [
     "FaceTable",
     "boundary_triangles",
     "face_table",
+    "global_face_vertices",
     "owned_boundary_triangle_dofs",
     "owned_exterior_facets",
     "p1_dof_coordinates",
@@ -131,9 +132,7 @@ def _exterior_faces(mesh: dolfinx.mesh.Mesh, c2v: np.ndarray, neighbour: np.ndar
         return candidates
     from fenics_matdepth._mpi import allgather_rows
 
-    local = c2v[cell[:, None], FACE_VERTICES[face]]
-    glob = mesh.topology.index_map(0).local_to_global(local.ravel().astype(np.int32))
-    keys = np.sort(np.asarray(glob, dtype=np.int64).reshape(-1, 3), axis=1)
+    keys = np.sort(global_face_vertices(mesh, c2v, candidates), axis=1)
     gathered = allgather_rows(comm, keys)
     rows, counts = np.unique(gathered, axis=0, return_counts=True)
     shared = rows[counts > 1]
@@ -147,16 +146,24 @@ def _exterior_faces(mesh: dolfinx.mesh.Mesh, c2v: np.ndarray, neighbour: np.ndar
     return candidates[~between]
 
 
+def global_face_vertices(
+    mesh: dolfinx.mesh.Mesh, cell_vertices: np.ndarray, faces: np.ndarray
+) -> np.ndarray:
+    """(m, 3) global topology vertices of the faces ``faces`` (m, 2) = (local cell, i), in
+    the cell's vertex order; ``cell_vertices`` as in :class:`FaceTable`."""
+    cell, face = faces.T
+    local = cell_vertices[cell[:, None], FACE_VERTICES[face]]
+    glob = mesh.topology.index_map(0).local_to_global(local.ravel().astype(np.int32))
+    return np.asarray(glob, dtype=np.int64).reshape(-1, 3)
+
+
 def face_table(mesh: dolfinx.mesh.Mesh) -> FaceTable:
     """The face neighbours and owned exterior faces of a tetrahedral mesh (collective).
 
     Computed from the cells' vertices (one numba pass, no DOLFINx facet entities) once per
     mesh and kept with it; the topology of a dolfinx mesh does not change.
     """
-    try:
-        table = _FACE_TABLES.get(mesh)
-    except TypeError:  # not weakly referenceable
-        table = None
+    table = _FACE_TABLES.get(mesh)
     if table is not None:
         return table
     tdim = mesh.topology.dim
@@ -165,10 +172,7 @@ def face_table(mesh: dolfinx.mesh.Mesh) -> FaceTable:
     neighbour, overshared = _face_neighbours(c2v, imap.size_local + imap.num_ghosts)
     exterior = _exterior_faces(mesh, c2v, neighbour)
     table = FaceTable(c2v, neighbour, exterior, int(overshared))
-    try:
-        _FACE_TABLES[mesh] = table
-    except TypeError:
-        pass
+    _FACE_TABLES[mesh] = table
     return table
 
 
