@@ -13,6 +13,7 @@ import ufl
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
+from fenics_matdepth.contact import assembly
 from fenics_matdepth.contact.operator import ContactOperator
 
 
@@ -148,6 +149,51 @@ def test_jacobian_insertion_matches_sorted_coo(integration):
     # the Dirichlet rows and columns stay empty, and there are some
     fixed = np.flatnonzero(op.surface.gathered()["bc"])  # the same on every rank
     assert len(fixed) > 0 and not inserted[fixed].any() and not inserted[:, fixed].any()
+    A.destroy()
+
+
+def test_couplings_outside_the_pattern():
+    """The pattern positions of the pairs' couplings (a search within each vertex's row) equal
+    a search of the whole pattern; after the upper box slides further than the pattern's
+    margin, pattern_needs_rebuild says so on every rank and add_jacobian refuses until
+    create_matrix is called again."""
+    comm = MPI.COMM_WORLD
+    _, V, u, op = _setup(comm, "area")
+    a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    A = op.create_matrix(a)
+    assert not op.pattern_needs_rebuild()
+
+    def positions_agree() -> int:
+        verts = op._evaluate(False, False)["verts"]
+        keys = op._pattern_in_held_numbering()
+        pos, missing = assembly.coupling_positions(op.surface, keys, verts)
+        nh = op.surface.num_held
+        wanted = verts[:, :, None] * nh + verts[:, None, :]
+        at = np.minimum(np.searchsorted(keys, wanted), max(keys.size - 1, 0))
+        found = keys[at] == wanted
+        assert np.array_equal(pos, np.where(found, at, -1))
+        assert missing == np.count_nonzero(~found)
+        return missing
+
+    assert comm.allreduce(positions_agree()) == 0
+    upper = op.body_of_vertex[np.argmax(op.surface.gathered()["X"][:, 2])]
+    n_owned = V.dofmap.index_map.size_local
+    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
+    ux = u.x.array[: 3 * n_owned].reshape(-1, 3)[:, 0]
+    ux[op.body_of_vertex[glob] == upper] -= 0.4  # 1.2 elements of the lower box
+    u.x.scatter_forward()
+    op.update()
+    assert comm.allreduce(positions_agree()) > 0
+    assert op.pattern_needs_rebuild()
+    A.zeroEntries()
+    with pytest.raises(RuntimeError, match="outside the matrix sparsity pattern"):
+        op.add_jacobian(A)
+    A.destroy()
+    A = op.create_matrix(a)
+    assert not op.pattern_needs_rebuild()
+    A.zeroEntries()
+    op.add_jacobian(A)
+    assert A.getInfo()["mallocs"] == 0
     A.destroy()
 
 

@@ -18,18 +18,19 @@ from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import (
     _accumulate_vertex_blocks,
     _blocks_to_csr,
-    _count_missing_couplings,
+    _coupling_positions,
+    _key_rows,
 )
 from fenics_matdepth.contact.surface import ContactSurface
 
 __all__ = [
     "add_jacobian_blocks",
+    "coupling_positions",
     "create_matrix",
     "global_dofs",
     "gradient_array",
     "held_keys",
     "hessian_coo",
-    "missing_couplings",
 ]
 
 
@@ -93,34 +94,56 @@ def held_keys(surface: ContactSurface, keys: np.ndarray) -> np.ndarray:
     return np.unique(hi[ok] * surface.num_held + hj[ok])
 
 
-def missing_couplings(surface: ContactSurface, keys: np.ndarray, verts: np.ndarray) -> int:
-    """Number of pair vertex couplings not in the held-numbered pattern ``keys``."""
-    return int(_count_missing_couplings(keys, surface.num_held, verts))
+def coupling_positions(
+    surface: ContactSurface, keys: np.ndarray, verts: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """Where the pairs' vertex couplings lie in the held-numbered pattern ``keys``.
+
+    Computed once per state and used twice: whether the pattern must be rebuilt (asked before
+    the Jacobian is assembled) and where each pair's Hessian blocks are summed.
+
+    Args:
+        surface: what the rank holds.
+        keys: sorted held-numbered coupling keys of the pattern (:func:`held_keys`).
+        verts: (n, m) held vertices of the pairs.
+
+    Returns:
+        ``(pos, missing)``: (n, m, m) index in ``keys`` of each coupling (-1 outside the
+        pattern), and the number of couplings outside it.
+    """
+    nh = surface.num_held
+    pos = np.empty((verts.shape[0], verts.shape[1], verts.shape[1]), dtype=INDEX)
+    missing = _coupling_positions(keys, _key_rows(keys, nh), nh, verts, pos)
+    return pos, int(missing)
 
 
 def add_jacobian_blocks(
-    A: PETSc.Mat, surface: ContactSurface, keys: np.ndarray, verts: np.ndarray, hess: np.ndarray
-) -> int:
+    A: PETSc.Mat,
+    surface: ContactSurface,
+    keys: np.ndarray,
+    pos: np.ndarray,
+    verts: np.ndarray,
+    hess: np.ndarray,
+) -> None:
     """Add the pair Hessians into ``A`` (not assembled here), Dirichlet rows/columns skipped.
 
     Pair Hessians are summed by numba into 3 x 3 blocks of the pattern's vertex couplings
-    (a binary search per coupling, no sort of the pairs' 441 entries each), and only the
-    blocks that pairs reach are inserted.
+    (at the positions of :func:`coupling_positions`; no sort of the pairs' 441 entries each),
+    and only the blocks that pairs reach are inserted. Couplings outside the pattern are left
+    out.
 
     Args:
         A: the matrix.
         surface: what the rank holds.
         keys: sorted held-numbered coupling keys of the pattern (:func:`held_keys`).
+        pos: (n, m, m) pattern index of each pair coupling (:func:`coupling_positions`).
         verts: (n, m) held vertices of the pairs.
         hess: (n, 3 m, 3 m) pair Hessians.
-
-    Returns:
-        The number of couplings outside ``keys`` (left out).
     """
     nh = surface.num_held
     blocks = np.zeros((keys.size, 3, 3), dtype=FLOAT)
     touched = np.zeros(keys.size, dtype=bool)
-    missing = _accumulate_vertex_blocks(keys, nh, verts, hess, surface.bc, blocks, touched)
+    _accumulate_vertex_blocks(pos, verts, hess, surface.bc, blocks, touched)
     rows, indptr, cols, vals = _blocks_to_csr(keys, nh, blocks, touched)
     if rows.size:
         A.setValuesIJV(
@@ -130,7 +153,6 @@ def add_jacobian_blocks(
             addv=PETSc.InsertMode.ADD_VALUES,
             rowmap=global_dofs(surface, rows).astype(PETSc.IntType),
         )
-    return int(missing)
 
 
 def create_matrix(comm: MPI.Comm, a: dolfinx.fem.Form, keys: np.ndarray, num_vertices: int):

@@ -1526,58 +1526,97 @@ def collocation_energy(
 
 
 @njit(cache=True)
-def _accumulate_vertex_blocks(keys, num_vertices, verts, hess, bc_mask, blocks, touched):
-    """Sum the pairs' Hessians into 3 x 3 blocks of a fixed vertex-coupling pattern.
+def _key_rows(keys, num_vertices):
+    """Row pointers of a sorted vertex-coupling pattern: the keys ``va * num_vertices + vb`` of
+    vertex ``va`` are ``keys[rows[va]:rows[va + 1]]``.
+
+    Args:
+        keys: (nk,) sorted keys.
+        num_vertices: number of vertices of the key numbering.
+
+    Returns:
+        (num_vertices + 1,) row pointers.
+    """
+    rows = np.zeros(num_vertices + 1, dtype=np.int64)
+    for k in range(keys.shape[0]):
+        rows[keys[k] // num_vertices + 1] += 1
+    for v in range(num_vertices):
+        rows[v + 1] += rows[v]
+    return rows
+
+
+@njit(cache=True)
+def _coupling_positions(keys, rows, num_vertices, verts, pos):
+    """Where each vertex coupling of the pairs lies in a fixed pattern.
+
+    A binary search within the row of the coupling's first vertex (a few dozen keys), not
+    over the whole pattern.
 
     Args:
         keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        rows: (num_vertices + 1,) their row pointers (`_key_rows`).
         num_vertices: number of vertices of the key numbering.
+        verts: (np, m) vertices of each pair (m = 7 for area pairs, 5 for collocation).
+        pos: (np, m, m) output: ``pos[p, a, b]`` the index in ``keys`` of the coupling
+            ``(verts[p, a], verts[p, b])``, -1 where the pattern lacks it.
+
+    Returns:
+        The number of couplings not in the pattern.
+    """
+    nvp = verts.shape[1]
+    missing = 0
+    for p in range(verts.shape[0]):
+        for a in range(nvp):
+            va = verts[p, a]
+            lo0 = rows[va]
+            hi0 = rows[va + 1]
+            for b in range(nvp):
+                key = va * num_vertices + verts[p, b]
+                lo = lo0
+                hi = hi0
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if keys[mid] < key:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                if lo < hi0 and keys[lo] == key:
+                    pos[p, a, b] = lo
+                else:
+                    pos[p, a, b] = -1
+                    missing += 1
+    return missing
+
+
+@njit(cache=True)
+def _accumulate_vertex_blocks(pos, verts, hess, bc_mask, blocks, touched):
+    """Sum the pairs' Hessians into 3 x 3 blocks of a fixed vertex-coupling pattern.
+
+    Args:
+        pos: (np, m, m) pattern index of each pair coupling, -1 if outside the pattern
+            (`_coupling_positions`; those entries are left out).
         verts: (np, m) vertices of each pair (m = 7 for area pairs, 5 for collocation).
         hess: (np, 3 m, 3 m) pair Hessians, xyz interleaved in the order of ``verts``.
         bc_mask: (3 num_vertices,) True on Dirichlet dofs, whose rows and columns are skipped.
         blocks: (nk, 3, 3) output, added to (zero it first).
         touched: (nk,) bool output, set True on every key a pair reaches.
-
-    Returns:
-        The number of vertex couplings not in ``keys`` (their entries are left out).
     """
     nvp = verts.shape[1]
-    nk = keys.shape[0]
-    missing = 0
     for p in range(verts.shape[0]):
         for a in range(nvp):
             va = verts[p, a]
             for b in range(nvp):
-                vb = verts[p, b]
-                key = va * num_vertices + vb
-                pos = np.searchsorted(keys, key)
-                if pos >= nk or keys[pos] != key:
-                    missing += 1
+                k = pos[p, a, b]
+                if k < 0:
                     continue
-                touched[pos] = True
+                vb = verts[p, b]
+                touched[k] = True
                 for r in range(3):
                     if bc_mask[3 * va + r]:
                         continue
                     for c in range(3):
                         if not bc_mask[3 * vb + c]:
-                            blocks[pos, r, c] += hess[p, 3 * a + r, 3 * b + c]
-    return missing
-
-
-@njit(cache=True)
-def _count_missing_couplings(keys, num_vertices, verts):
-    """Number of vertex couplings of the pairs ``verts`` (np, m) that are not in ``keys``."""
-    nvp = verts.shape[1]
-    nk = keys.shape[0]
-    missing = 0
-    for p in range(verts.shape[0]):
-        for a in range(nvp):
-            for b in range(nvp):
-                key = verts[p, a] * num_vertices + verts[p, b]
-                pos = np.searchsorted(keys, key)
-                if pos >= nk or keys[pos] != key:
-                    missing += 1
-    return missing
+                            blocks[k, r, c] += hess[p, 3 * a + r, 3 * b + c]
 
 
 @njit(cache=True)
@@ -1585,7 +1624,9 @@ def _blocks_to_csr(keys, num_vertices, blocks, touched):
     """The touched 3 x 3 blocks as a CSR over dof rows, for ``MatSetValuesIJV``.
 
     Args:
-        keys, num_vertices, blocks, touched: as in `_accumulate_vertex_blocks`.
+        keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        num_vertices: number of vertices of the key numbering.
+        blocks, touched: as filled by `_accumulate_vertex_blocks`.
 
     Returns:
         ``(rows, indptr, cols, vals)``: global dof rows (``3 va + r``), row pointers into

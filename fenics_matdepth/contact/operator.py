@@ -287,16 +287,15 @@ class ContactOperator:
         if bcs is not None:
             self.set_bcs(bcs)
         r = self._evaluate(False, True)
-        keys = self._pattern_in_held_numbering()
-        missing = assembly.add_jacobian_blocks(A, self.surface, keys, r["verts"], r["hess"])
-        if "pattern_missing" not in self._cache:
-            self._cache["pattern_missing"] = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
+        pos = self._coupling_positions()
         if self._cache["pattern_missing"]:
             raise RuntimeError(
                 "contact couplings fall outside the matrix sparsity pattern: call "
                 "create_matrix(a) again (ContactProblem does this automatically), or build the "
                 "operator with a larger margin"
             )
+        keys = self._pattern_in_held_numbering()
+        assembly.add_jacobian_blocks(A, self.surface, keys, pos, r["verts"], r["hess"])
         A.assemble()
 
     # -- sparsity ---------------------------------------------------------------------------
@@ -307,16 +306,22 @@ class ContactOperator:
         The answer is kept until the next :meth:`update` or :meth:`create_matrix`: a solver
         that asks before assembling does not pay again inside :meth:`add_jacobian`.
         """
-        if "pattern_missing" in self._cache:
-            return self._cache["pattern_missing"]
-        verts = self._evaluate(False, False)["verts"]
-        if self._pattern_keys is None:
-            missing = verts.size > 0
-        else:
-            keys = self._pattern_in_held_numbering()
-            missing = assembly.missing_couplings(self.surface, keys, verts) > 0
-        self._cache["pattern_missing"] = bool(self.comm.allreduce(missing, op=MPI.LOR))
+        self._coupling_positions()
         return self._cache["pattern_missing"]
+
+    def _coupling_positions(self) -> np.ndarray:
+        """The pattern index of every vertex coupling of the current pairs (see
+        :func:`assembly.coupling_positions`), kept with whether any rank has one outside the
+        pattern until the next :meth:`update` or :meth:`create_matrix` (collective on first
+        call at a state)."""
+        if "positions" not in self._cache:
+            verts = self._evaluate(False, False)["verts"]
+            pos, missing = assembly.coupling_positions(
+                self.surface, self._pattern_in_held_numbering(), verts
+            )
+            self._cache["positions"] = pos
+            self._cache["pattern_missing"] = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
+        return self._cache["positions"]
 
     @announces_compilation("the contact sparsity pattern")
     def create_matrix(self, a: dolfinx.fem.Form) -> PETSc.Mat:
@@ -332,6 +337,7 @@ class ContactOperator:
         self._pattern_keys = pairs.pattern_keys(self.surface, self.integration, self.margin)
         self._held_keys = None
         self._cache.pop("pattern_missing", None)
+        self._cache.pop("positions", None)
         return assembly.create_matrix(self.comm, a, self._pattern_keys, self.num_vertices)
 
     # -- augmented Lagrangian (nodal contact pressures; driver: fenics_matdepth.augmented) ---
