@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from fenics_matdepth.contact.kernels import (
     _area_pairs,
     _area_pairs_into,
+    _clip_shift_jacobian,
     _collocation_pairs,
     _intersecting,
     collocation_energy,
@@ -239,6 +240,33 @@ def test_gradient_hessian_edge_on_face_boundary_terms():
     g_fd, h_fd = fd_derivatives(f, x0)
     assert rel_err(grad, g_fd) < FD_RTOL
     assert rel_err(hess, h_fd) < FD_RTOL
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_clip_shift_jacobian_against_differences(scale):
+    """The kernels' exact Jacobian of the clip shift equals 4th-order central differences of
+    `clip_shift`, on random triangles, slivers and triangles far from the origin. (The pair
+    derivatives cannot check it: the shift is 1e-9 of the element size.)"""
+    rng = np.random.default_rng(7)
+    triangles = [rng.normal(size=(3, 3)) for _ in range(20)]
+    sliver = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 1e-3, 0]])
+    needle = np.array([[0.0, 0, 0], [1e-2, 0, 0], [0.3, 1, 0.2]])
+    far = rng.normal(size=(3, 3)) + 100.0
+    for x_tri in [*triangles, sliver, needle, far]:
+        x_tri = scale * x_tri
+        ds = np.empty((3, 9))
+        _clip_shift_jacobian(x_tri, ds)
+        h = 1e-5 * scale
+        fd = np.empty((3, 9))
+        for col in range(9):
+            e = np.zeros(9)
+            e[col] = h
+            e = e.reshape(3, 3)
+            fd[:, col] = (
+                8.0 * (clip_shift(x_tri + e) - clip_shift(x_tri - e))
+                - (clip_shift(x_tri + 2 * e) - clip_shift(x_tri - 2 * e))
+            ) / (12.0 * h)
+        assert rel_err(ds, fd) < 1e-6
 
 
 def test_taylor_remainder():

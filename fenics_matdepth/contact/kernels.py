@@ -30,9 +30,10 @@ from numba import njit
 
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.geometry.clip import (
+    CLIP_SHIFT,
     MAX_POLYGON_VERTICES,
+    SHIFT_TANGENT,
     _clip,
-    _clip_shift,
     _intersect_pairs,
     _tet_gradients,
     _triangle_area2,
@@ -80,8 +81,7 @@ def _area_work():
         np.empty((9, 3), dtype=FLOAT),  # 19 dn[3 i + a] = d (triangle normal) / d x_ia
         np.empty(_NV, dtype=np.int64),  # 20 number of live columns per vertex
         np.empty((5, 9), dtype=FLOAT),  # 21 gradients of the edge integrand's factors
-        np.empty((3, 3), dtype=FLOAT),  # 22 a perturbed copy of the triangle
-        np.empty((3, 9), dtype=FLOAT),  # 23 d (clip shift) / d x_tri
+        np.empty((3, 9), dtype=FLOAT),  # 22 d (clip shift) / d x_tri
     )
 
 
@@ -287,25 +287,71 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
 
 
 @njit(cache=True)
-def _clip_shift_jacobian(xs, a2, xq, ds):
-    """``ds[a, 3 m + b] = d s_a / d x_mb`` of the clip shift s (`_clip_shift`) by central
-    differences with a step of 1e-5 sqrt(2 A): s is of size CLIP_SHIFT h, so the differences'
-    truncation and rounding errors, about 1e-10 and 1e-11 of ds, are of order 1e-20 h in the
-    pair's derivatives."""
-    eta = 1e-5 * np.sqrt(a2)
-    for m in range(3):
-        for r in range(3):
-            xq[m, r] = xs[m, r]
+def _clip_shift_jacobian(xs, ds):
+    """``ds[a, 3 m + b] = d s_a / d x_mb`` of the clip shift s (`_clip_shift`), exactly.
+
+    With ``n = (x1 - x0) x (x2 - x0)``, ``N = |n|``, ``a = x1 - x0``, ``L = |a|`` and
+    ``C = CLIP_SHIFT``: ``s = C N^(-1/2) n + C t1 N^(1/2) L^(-1) a + C t2 N^(-1/2) L^(-1) (n x
+    a)`` ((t1, t2) = SHIFT_TANGENT), differentiated with ``dN = n . dn / N``, ``dL = a . da /
+    L`` and, for a move ``e`` of corner 0, 1, 2: ``(da, dn) = (-e, e x (a - b))``, ``(e, e x
+    b)``, ``(0, a x e)`` (``b = x2 - x0``). Called only for triangles of non-zero area.
+    """
+    ax = xs[1, 0] - xs[0, 0]
+    ay = xs[1, 1] - xs[0, 1]
+    az = xs[1, 2] - xs[0, 2]
+    bx = xs[2, 0] - xs[0, 0]
+    by = xs[2, 1] - xs[0, 1]
+    bz = xs[2, 2] - xs[0, 2]
+    nx = ay * bz - az * by
+    ny = az * bx - ax * bz
+    nz = ax * by - ay * bx
+    # n x a
+    wx = ny * az - nz * ay
+    wy = nz * ax - nx * az
+    wz = nx * ay - ny * ax
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    ll = np.sqrt(ax * ax + ay * ay + az * az)
+    rn = 1.0 / np.sqrt(nn)  # N^(-1/2)
+    il = 1.0 / ll
+    c0 = CLIP_SHIFT * rn  # coefficient of n
+    c1 = CLIP_SHIFT * SHIFT_TANGENT[0] * nn * rn * il  # of a (N^(1/2) = N N^(-1/2))
+    c2 = CLIP_SHIFT * SHIFT_TANGENT[1] * rn * il  # of n x a
     for m in range(3):
         for b in range(3):
-            xq[m, b] = xs[m, b] + eta
-            px, py, pz = _clip_shift(xq)
-            xq[m, b] = xs[m, b] - eta
-            mx, my, mz = _clip_shift(xq)
-            xq[m, b] = xs[m, b]
-            ds[0, 3 * m + b] = (px - mx) / (2.0 * eta)
-            ds[1, 3 * m + b] = (py - my) / (2.0 * eta)
-            ds[2, 3 * m + b] = (pz - mz) / (2.0 * eta)
+            ex = 1.0 if b == 0 else 0.0
+            ey = 1.0 if b == 1 else 0.0
+            ez = 1.0 if b == 2 else 0.0
+            if m == 0:
+                dax, day, daz = -ex, -ey, -ez
+                # e x (a - b)
+                px, py, pz = ax - bx, ay - by, az - bz
+                dnx = ey * pz - ez * py
+                dny = ez * px - ex * pz
+                dnz = ex * py - ey * px
+            elif m == 1:
+                dax, day, daz = ex, ey, ez
+                dnx = ey * bz - ez * by
+                dny = ez * bx - ex * bz
+                dnz = ex * by - ey * bx
+            else:
+                dax, day, daz = 0.0, 0.0, 0.0
+                dnx = ay * ez - az * ey
+                dny = az * ex - ax * ez
+                dnz = ax * ey - ay * ex
+            dlog_n = (nx * dnx + ny * dny + nz * dnz) / (nn * nn)  # dN / N
+            dlog_l = (ax * dax + ay * day + az * daz) * il * il  # dL / L
+            # d(n x a) = dn x a + n x da
+            dwx = dny * az - dnz * ay + ny * daz - nz * day
+            dwy = dnz * ax - dnx * az + nz * dax - nx * daz
+            dwz = dnx * ay - dny * ax + nx * day - ny * dax
+            # d c0 = -c0 dN / 2N, d c1 = c1 (dN / 2N - dL / L), d c2 = -c2 (dN / 2N + dL / L)
+            f0 = -0.5 * dlog_n * c0
+            f1 = (0.5 * dlog_n - dlog_l) * c1
+            f2 = -(0.5 * dlog_n + dlog_l) * c2
+            col = 3 * m + b
+            ds[0, col] = f0 * nx + c0 * dnx + f1 * ax + c1 * dax + f2 * wx + c2 * dwx
+            ds[1, col] = f0 * ny + c0 * dny + f1 * ay + c1 * day + f2 * wy + c2 * dwy
+            ds[2, col] = f0 * nz + c0 * dnz + f1 * az + c1 * daz + f2 * wz + c2 * dwz
 
 
 @njit(cache=True)
@@ -389,7 +435,6 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         dn,
         ncol,
         zv,
-        xq,
         ds,
     ) = work
     if want_grad:
@@ -584,7 +629,7 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
 
     # Phi is evaluated at the shifted corners y_i = x_i + s(x_tri) (the clip shift): its
     # triangle gradient is T^T dPhi/dy with T = dy/dx = I + [ds/dx] for every corner
-    _clip_shift_jacobian(xs, a2, xq, ds)
+    _clip_shift_jacobian(xs, ds)
     _shift_rows(gx, ds)
 
     for c in range(9):
