@@ -390,6 +390,19 @@ def _shift_hessian(hess, p, ds, tmp):
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up). The same holds
 # for every helper of this module and of geometry/clip.py: none is IR-inlined any more.
 @njit(cache=True)
+def _no_contribution(grad, hess, p, want_grad, want_hess):
+    """Zero row p of the wanted outputs of a pair that does not contribute; returns -1.0."""
+    if want_grad:
+        for c in range(21):
+            grad[p, c] = 0.0
+    if want_hess:
+        for c in range(21):
+            for c2 in range(21):
+                hess[p, c, c2] = 0.0
+    return -1.0
+
+
+@njit(cache=True)
 def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hess, p):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
@@ -437,22 +450,16 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         zv,
         ds,
     ) = work
-    if want_grad:
-        for c in range(21):
-            grad[p, c] = 0.0
-    if want_hess:
-        for c in range(21):
-            for c2 in range(21):
-                hess[p, c, c2] = 0.0
+    # a contributing pair writes every entry of its outputs; the others are zeroed here
     a2 = _triangle_area2(xs)
     if a2 == 0.0:
-        return -1.0
+        return _no_contribution(grad, hess, p, want_grad, want_hess)
     if _tet_gradients(xt, grads) == 0.0:
-        return -1.0
+        return _no_contribution(grad, hess, p, want_grad, want_hess)
     _triangle_rows(xs, xt, grads, lam)
     n = _clip(lam, mu, vlab, elab)
     if n < 3:
-        return -1.0
+        return _no_contribution(grad, hess, p, want_grad, want_hess)
     area = 0.5 * a2
     g0 = lam[0, 0] * dt[0] + lam[0, 1] * dt[1] + lam[0, 2] * dt[2] + lam[0, 3] * dt[3]
     g1 = lam[1, 0] * dt[0] + lam[1, 1] * dt[1] + lam[1, 2] * dt[2] + lam[1, 3] * dt[3]
@@ -702,16 +709,15 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
                     val = -grads[k, a] * ww[i, b]
                     hess[p, 3 * i + a, 9 + 3 * k + b] += val
                     hess[p, 9 + 3 * k + b, 3 * i + a] += val
+    # tet-tet: sum_i (lam_il ww_ia grads_kb + lam_ik grads_la ww_ib), where the tetrahedron
+    # part of gx holds -sum_i lam_ik ww_ia
     for k in range(4):
         for l in range(4):
             for a in range(3):
                 for b in range(3):
-                    acc = 0.0
-                    for i in range(3):
-                        acc += (
-                            lam[i, l] * ww[i, a] * grads[k, b] + lam[i, k] * grads[l, a] * ww[i, b]
-                        )
-                    hess[p, 9 + 3 * k + a, 9 + 3 * l + b] += acc
+                    hess[p, 9 + 3 * k + a, 9 + 3 * l + b] -= (
+                        gx[9 + 3 * l + a] * grads[k, b] + gx[9 + 3 * k + b] * grads[l, a]
+                    )
     # the clip shift: T^T H T on the triangle rows and columns (the second derivatives of the
     # shift, of relative size CLIP_SHIFT, are left out)
     _shift_hessian(hess, p, ds, zv)
