@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 from fenics_matdepth.geometry.clip import (
     CLIP_SHIFT,
     CLIP_TOL,
+    MAX_POLYGON_VERTICES,
     SHIFT_TANGENT,
+    _clip_nonempty,
     _intersect_pairs,
     _near_pairs,
     clip_shift,
@@ -288,6 +290,42 @@ def test_batch_intersection_test_matches_polygon():
     )
     assert count == expected.sum() > 20
     np.testing.assert_array_equal(flags, expected)
+
+
+def _clip_keeps_polygon(lam) -> bool:
+    """Sutherland-Hodgman of the parameter simplex on the four barycentric values of each
+    vertex, all of them carried along: the plain form of the test `_intersect_pairs` makes
+    (Python floats, the same operations in the same order)."""
+    poly = [list(row) for row in lam]
+    for j in range(4):
+        out = []
+        for k in range(len(poly)):
+            p, q = poly[k], poly[(k + 1) % len(poly)]
+            if p[j] >= 0.0:
+                out.append(p)
+            if (p[j] > 0.0 and q[j] < 0.0) or (p[j] < 0.0 and q[j] > 0.0):
+                t = p[j] / (p[j] - q[j])
+                out.append([p[r] + t * (q[r] - p[r]) for r in range(4)])
+        if len(out) < 3:
+            return False
+        poly = out
+    return True
+
+
+def test_clip_nonempty_on_exact_zeros():
+    """The clip decision on barycentric rows with many exact zeros and ties (small integers:
+    vertices on face lines, edges along them, polygons shrunk to an edge or a point), where the
+    count of vertices left, not the signs alone, decides."""
+    rng = np.random.default_rng(17)
+    buf = np.empty((2, MAX_POLYGON_VERTICES, 4))
+    decided = [0, 0]
+    for _ in range(20000):
+        lam = rng.integers(-2, 3, size=(3, 4)).astype(float)
+        lam[:, 0] = rng.integers(-1, 2, size=3)
+        expected = _clip_keeps_polygon(lam.tolist())
+        assert _clip_nonempty(lam, buf) == expected
+        decided[expected] += 1
+    assert min(decided) > 2000
 
 
 def test_clip_tolerance_is_small():
