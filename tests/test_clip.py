@@ -17,6 +17,10 @@ from fenics_matdepth.geometry.clip import (
     _clip_nonempty,
     _intersect_pairs,
     _near_pairs,
+    _snap,
+    _tet_gradients,
+    _triangle_area2,
+    _triangle_rows,
     clip_shift,
     intersection_polygon,
 )
@@ -326,6 +330,61 @@ def test_clip_nonempty_on_exact_zeros():
         assert _clip_nonempty(lam, buf) == expected
         decided[expected] += 1
     assert min(decided) > 2000
+
+
+def _reference_flags(x, tri, tet, pair_tri, pair_tet):
+    """The intersection test pair by pair from the clipper's parts: flat tetrahedron, shifted
+    and snapped corner rows, separating face plane, corner strictly inside, clip, area."""
+    flags = np.zeros(len(pair_tri), dtype=bool)
+    grads = np.empty((4, 3))
+    lam = np.empty((3, 4))
+    for p, (a, b) in enumerate(zip(pair_tri, pair_tet, strict=True)):
+        xs = np.ascontiguousarray(x[tri[a]])
+        xt = np.ascontiguousarray(x[tet[b]])
+        if _tet_gradients(xt, grads) == 0.0 or _triangle_area2(xs) == 0.0:
+            continue
+        _triangle_rows(xs, xt, grads, lam)
+        _snap(lam)
+        if np.any(np.all(lam < 0.0, axis=0)):
+            continue
+        flags[p] = bool(np.any(np.all(lam > 0.0, axis=1))) or _clip_keeps_polygon(lam.tolist())
+    return flags
+
+
+def _degenerate_mesh(seed):
+    """Vertices on a small (half-)integer grid: corners on face planes, triangles in face planes,
+    edges through edges, flat tetrahedra and zero-area triangles (repeated or collinear
+    vertices) all occur; a quarter of the triangles are tetrahedron faces, a quarter the same
+    faces reversed."""
+    rng = np.random.default_rng(seed)
+    x = rng.integers(-2, 3, size=(40, 3)).astype(float)
+    x[:20] *= 0.5
+    tri = rng.integers(0, 40, size=(120, 3))
+    tet = rng.integers(0, 40, size=(120, 4))
+    tri[:30] = tet[rng.integers(0, 120, size=30)][:, [1, 2, 3]]
+    tri[30:60] = tet[rng.integers(0, 120, size=30)][:, [0, 2, 1]]
+    # a rotated and shifted copy: the same incidences up to rounding of the coordinates
+    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return x, tri, tet, x @ rot + 0.37
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_batch_intersection_test_degenerate_pairs(seed):
+    """`_intersect_pairs` decides degenerate pairs exactly as the clipper's parts do (the
+    shift, the snapping, the flat and zero-area cases), with candidates in random order and
+    grouped by triangle (the per-triangle values it reuses along a group)."""
+    x, tri, tet, x_rot = _degenerate_mesh(seed)
+    rng = np.random.default_rng(100 + seed)
+    pair_tri = rng.integers(0, len(tri), size=3000)
+    pair_tet = rng.integers(0, len(tet), size=3000)
+    for coords in (x, x_rot):
+        expected = _reference_flags(coords, tri, tet, pair_tri, pair_tet)
+        assert 300 < expected.sum() < 2700
+        for order in (np.arange(3000), np.argsort(pair_tri, kind="stable")):
+            flags = np.empty(3000, dtype=bool)
+            count = _intersect_pairs(coords, tri, tet, pair_tri[order], pair_tet[order], flags)
+            np.testing.assert_array_equal(flags, expected[order])
+            assert count == expected.sum()
 
 
 def test_clip_tolerance_is_small():
