@@ -303,12 +303,7 @@ def _clip_nonempty(lam, buf):
     """Whether `_clip` would return a polygon (n >= 3), without building it.
 
     The same sign logic on ``lam`` (already snapped by the caller), but each vertex carries only
-    the barycentric values of the faces still to come, interpolated along clipped edges; no
-    labels, no early copy. On a cycle with a value ``L > 0`` and one ``L < 0`` the clip keeps
-    at least three vertices (the positive one, and on each of the two ways from the positive to
-    the negative values a vertex with ``L = 0`` or a sign change), so the vertex count of a clip
-    matters only where no value is positive (then it is the number of zeros), and the last face
-    needs no new vertices at all.
+    its four barycentric values, interpolated along clipped edges; no labels, no early copy.
 
     Args:
         lam: (3, 4) snapped barycentric coordinates of the triangle vertices.
@@ -320,21 +315,6 @@ def _clip_nonempty(lam, buf):
     n = 3
     cur = 0
     for j in range(4):
-        n_neg = 0
-        n_pos = 0
-        for k in range(n):
-            L = buf[cur, k, j]
-            n_neg += L < 0.0
-            n_pos += L > 0.0
-        # no vertex outside: the clip keeps the polygon as it is
-        if n_neg == 0:
-            continue
-        if n_pos == 0:
-            # nothing crosses: the vertices on the line (L = 0) are what is left
-            if n - n_neg < 3:
-                return False
-        elif j == 3:
-            return True
         nxt = 1 - cur
         m = 0
         Lp = buf[cur, 0, j]
@@ -342,16 +322,17 @@ def _clip_nonempty(lam, buf):
             k1 = k + 1 if k + 1 < n else 0
             Lq = buf[cur, k1, j]
             if Lp >= 0.0:
-                # only the values of the faces still to come are read again
-                for r in range(j + 1, 4):
+                for r in range(4):
                     buf[nxt, m, r] = buf[cur, k, r]
                 m += 1
             if (Lp > 0.0 and Lq < 0.0) or (Lp < 0.0 and Lq > 0.0):
                 t = Lp / (Lp - Lq)
-                for r in range(j + 1, 4):
+                for r in range(4):
                     buf[nxt, m, r] = buf[cur, k, r] + t * (buf[cur, k1, r] - buf[cur, k, r])
                 m += 1
             Lp = Lq
+        if m < 3:
+            return False
         n = m
         cur = nxt
     return True
