@@ -426,8 +426,9 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     `_triangle_area2`, with the same floating-point operations in the same order (hence the
     same flags), written out on scalars: the triangle's clip shift and area are computed once
     per run of pairs with the same triangle (a broad phase delivers candidates grouped by
-    triangle), the snapping and the face-plane and corner tests are selects rather than
-    branches, and the work arrays of the clipper are filled only for the pairs it decides.
+    triangle), a zero-area triangle's pairs are dropped before their tetrahedra are read, and
+    the snapping and the face-plane and corner tests are selects and bit masks rather than
+    branches.
 
     Args:
         x: (nv, 3) current vertex coordinates.
