@@ -1,9 +1,12 @@
-"""DOLFINx version differences (0.9, 0.10, 0.11), kept in this one module.
+"""DOLFINx version differences (0.9, 0.10, 0.11), and what petsc4py lacks, kept in this one module.
 
 Everything else in the package calls these helpers instead of testing versions itself.
 """
 
 from __future__ import annotations
+
+import ctypes
+import functools
 
 import dolfinx
 
@@ -16,6 +19,7 @@ __all__ = [
     "geometry_dofmap",
     "gmsh_model_to_mesh",
     "interpolation_points",
+    "set_lag_preconditioner",
     "solve_nonlinear",
 ]
 
@@ -280,3 +284,37 @@ def bc_constrains_space(bc, V) -> bool:
     space = bc.function_space
     space = getattr(space, "_cpp_object", space)
     return bool(V._cpp_object.contains(space))
+
+
+def set_lag_preconditioner(snes, lag: int) -> None:
+    """``SNESSetLagPreconditioner(snes, lag)``: -2 factorise (set up the preconditioner of) the
+    next Jacobian, -1 keep the last one (logically collective).
+
+    petsc4py (3.22 to 3.25 at least) does not wrap it; the C function is called through ctypes,
+    from the PETSc library petsc4py's extension module is linked with.
+    """
+    method = getattr(snes, "setLagPreconditioner", None)
+    if method is not None:
+        method(lag)
+        return
+    err = _petsc_c().SNESSetLagPreconditioner(ctypes.c_void_p(snes.handle), _petsc_int()(lag))
+    if err != 0:
+        raise RuntimeError(f"SNESSetLagPreconditioner({lag}) failed with PETSc error {err}")
+
+
+def _petsc_int():
+    from petsc4py import PETSc
+
+    import numpy as np
+
+    return ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+
+
+@functools.cache
+def _petsc_c():
+    from petsc4py import PETSc
+
+    # dlsym on the extension module also searches the libraries it was linked with (libpetsc)
+    lib = ctypes.CDLL(PETSc.__file__)
+    lib.SNESSetLagPreconditioner.restype = ctypes.c_int
+    return lib

@@ -287,6 +287,7 @@ class AugmentedLagrangian:
         self.history = []
         norms: list[np.ndarray] = []
         iterations, rejected, converged, reason, shifted = 0, 0, False, -1, 0
+        factorisations = 0
         result = None
         previous = None  # (state, pressures) before the last update, to retry a failed solve
         halvings = 0
@@ -300,6 +301,7 @@ class AugmentedLagrangian:
             iterations += result.iterations
             rejected += result.rejected_states
             shifted += result.shifted_steps
+            factorisations += result.factorisations
             norms.append(np.asarray(result.residual_norms))
             if not result.converged:
                 if previous is None or halvings >= MAX_UPDATE_HALVINGS:
@@ -331,7 +333,7 @@ class AugmentedLagrangian:
         out = SolveResult(
             converged, reason, iterations,
             np.concatenate(norms) if norms else np.empty(0), rejected, result.min_det_F,
-            shifted,
+            shifted, factorisations,
         )  # fmt: skip
         if not converged:
             self.pressure = start
@@ -456,7 +458,7 @@ class RigidModeDamping:
         """Damped solves until ``u`` settles, then one undamped solve (collective)."""
         comm = self.u.function_space.mesh.comm
         start = self.u.x.array.copy()
-        iterations, rejected, norms, shifted = 0, 0, [], 0
+        iterations, rejected, norms, shifted, factorisations = 0, 0, [], 0, 0
         self._k.value = self.stiffness
         self.damped_solves = 0
         result = None
@@ -473,6 +475,7 @@ class RigidModeDamping:
                 iterations += result.iterations
                 rejected += result.rejected_states
                 shifted += result.shifted_steps
+                factorisations += result.factorisations
                 norms.append(np.asarray(result.residual_norms))
                 r = result.residual_norms
                 if not result.converged:
@@ -496,12 +499,13 @@ class RigidModeDamping:
                 iterations += result.iterations
                 rejected += result.rejected_states
                 shifted += result.shifted_steps
+                factorisations += result.factorisations
                 norms.append(np.asarray(result.residual_norms))
         finally:
             self._k.value = 0.0
         out = SolveResult(
             result.converged, result.reason, iterations, np.concatenate(norms), rejected,
-            result.min_det_F, shifted,
+            result.min_det_F, shifted, factorisations,
         )  # fmt: skip
         if raise_on_failure and not out.converged:
             raise RuntimeError(out.failure_message())

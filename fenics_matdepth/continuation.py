@@ -190,7 +190,7 @@ class PenaltyContinuation:
         self.timings = {}
         norms: list[np.ndarray] = []
         iterations, rejected, converged, reason, min_det_F = 0, 0, False, -1, np.nan
-        shifted = 0
+        shifted = factorisations = 0
         last = None  # (state, penalty) of the last converged stage
         growth = self.growth
         penalty = min(self.start, self.target)
@@ -205,6 +205,7 @@ class PenaltyContinuation:
                     iterations += result.iterations
                     rejected += result.rejected_states
                     shifted += result.shifted_steps
+                    factorisations += result.factorisations
                     norms.append(np.asarray(result.residual_norms))
                     reason, min_det_F = result.reason, result.min_det_F
                     for key, seconds in getattr(self.problem, "timings", {}).items():
@@ -250,6 +251,7 @@ class PenaltyContinuation:
         out = SolveResult(
             converged, reason, iterations,
             np.concatenate(norms) if norms else np.empty(0), rejected, min_det_F, shifted,
+            factorisations,
         )  # fmt: skip
         if raise_on_failure and not converged:
             raise RuntimeError(self.failure_message(out))

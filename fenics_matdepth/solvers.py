@@ -28,7 +28,11 @@ import numpy as np
 import ufl
 
 from fenics_matdepth._checks import CellDeterminants, collective_error
-from fenics_matdepth._compat import NewtonSolverProblemBase, bc_constrains_space
+from fenics_matdepth._compat import (
+    NewtonSolverProblemBase,
+    bc_constrains_space,
+    set_lag_preconditioner,
+)
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator
@@ -54,6 +58,27 @@ _DEFAULT_OPTIONS = {
     "pc_type": "lu",
     "pc_factor_mat_solver_type": "mumps",
 }
+
+#: ContactProblem's default direct solver keeps a factorisation across the Newton iterations of
+#: a solve: each Jacobian is solved by GMRES (right-preconditioned, to KEPT_FACTORISATION_RTOL
+#: of the residual: an exact Newton step for the iteration) preconditioned by the last
+#: factorisation, and a Jacobian is factorised anew at the first iteration of every solve,
+#: after the matrix's pattern was rebuilt, and once GMRES needed more than
+#: REFACTORISE_ITERATIONS iterations. A factorisation costs as much as 20 to 40 GMRES
+#: iterations on it (benchmarks/bench_steps.py's 40k tetrahedra: 0.9 s against 20 to 30 ms).
+#: On bench_steps this cut the 50 steps' linear solves from 141 s to 85 s, with the same
+#: Newton iterations (docs/solvers.md). Giving ``ksp_type`` or ``pc_type`` turns it off.
+_KEPT_FACTORISATION_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_pc_side": "right",
+    "ksp_norm_type": "unpreconditioned",
+    "ksp_rtol": 1e-10,
+    "ksp_atol": 0.0,
+    "ksp_max_it": 100,
+    "ksp_gmres_restart": 100,
+}
+KEPT_FACTORISATION_RTOL = _KEPT_FACTORISATION_OPTIONS["ksp_rtol"]
+REFACTORISE_ITERATIONS = 10
 
 #: From this many global dofs on, ContactProblem's default linear solver is GMRES preconditioned
 #: by GAMG with the rigid-body near-nullspace (_AMG_OPTIONS) instead of MUMPS LU. Measured with
@@ -187,6 +212,9 @@ class SolveResult:
         shifted_steps: Newton steps taken with the shifted Jacobian ``J + mu I`` because the
             Newton step would have climbed the energy (:class:`ContactProblem` with an energy
             and a MUMPS solver; see SHIFT_START).
+        factorisations: Jacobians factorised by :class:`ContactProblem`'s default direct
+            solver, which keeps a factorisation while GMRES on it converges fast (see
+            REFACTORISE_ITERATIONS); 0 for other linear solvers.
     """
 
     converged: bool
@@ -196,6 +224,7 @@ class SolveResult:
     rejected_states: int = 0
     min_det_F: float = np.nan
     shifted_steps: int = 0
+    factorisations: int = 0
 
     def failure_message(self) -> str:
         """Why the solve failed, with the residual history."""
@@ -475,7 +504,10 @@ class ContactProblem(_Releasable):
         petsc_options: options set under the prefix (defaults: newtonls, bt line search, MUMPS
             direct solve, rtol 1e-10, atol 1e-12, at most 50 iterations). Unless ``pc_type``
             is given, MUMPS factorises each Jacobian that is symmetric (every problem with an
-            energy) as LDL^T and any other as LU (``solvers.choose_factorisation``). From
+            energy) as LDL^T and any other as LU (``solvers.choose_factorisation``), and keeps
+            a factorisation across a solve's Newton iterations as GMRES's preconditioner until
+            GMRES needs more than REFACTORISE_ITERATIONS iterations (``ksp_type: preonly``
+            factorises every Jacobian instead). From
             AMG_MIN_DOFS global dofs on, unless ``ksp_type`` or ``pc_type`` is given, the
             linear solver is GMRES with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
             (:func:`~fenics_matdepth.rigid_body_modes`) are set as the matrix's near-nullspace.
@@ -531,6 +563,8 @@ class ContactProblem(_Releasable):
             del options["pc_factor_mat_solver_type"]
         elif "pc_type" not in user:  # LDL^T or LU, chosen per Jacobian (choose_factorisation)
             options["mat_mumps_icntl_14"] = LDLT_WORKSPACE_PERCENT
+            if "ksp_type" not in user:
+                options.update(_KEPT_FACTORISATION_OPTIONS)
         opts = PETSc.Options()
         opts.prefixPush(self.prefix)
         for key, value in {**options, **user}.items():
@@ -552,6 +586,15 @@ class ContactProblem(_Releasable):
         ksp.setFromOptions()
         # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
         self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
+        # the default direct solver keeps its factorisation (_KEPT_FACTORISATION_OPTIONS)
+        self._keep_factorisation = (
+            self._choose_factorisation
+            and "ksp_type" not in user
+            and not {"snes_lag_preconditioner", "snes_lag_jacobian"} & set(user)
+        )
+        self._factorise = True  # whether the coming Jacobian is factorised
+        self._factorisations = self._kept = 0
+        self._may_keep = True
         #: Newton steps of the last solve taken with the shifted Jacobian (_shifted_direction)
         self.shifted_steps = 0
         if ksp.getPC().getType() == "gamg":
@@ -597,7 +640,7 @@ class ContactProblem(_Releasable):
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
         self.assembler.jacobian(A)
-        if self._choose_factorisation:
+        if self._choose_factorisation and self._factorise:
             with self._watch("linear_solve"):
                 choose_factorisation(self.snes.getKSP().getPC(), A)
 
@@ -753,7 +796,21 @@ class ContactProblem(_Releasable):
         def register(A: PETSc.Mat) -> None:
             snes.setJacobian(self._jacobian, A, A)
 
-        self.assembler.rebuild_matrix_if_needed(register)
+        rebuilt = self.assembler.rebuild_matrix_if_needed(register)
+        if self._keep_factorisation:
+            # factorise at a solve's start, on a new pattern, and once the kept factorisation
+            # no longer pays (GMRES iterations are counted on every rank alike)
+            self._factorise = (
+                iteration == 0
+                or rebuilt
+                or not self._may_keep
+                or snes.getKSP().getIterationNumber() > REFACTORISE_ITERATIONS
+            )
+            set_lag_preconditioner(snes, -2 if self._factorise else -1)
+            if self._factorise:
+                self._factorisations += 1
+            else:
+                self._kept += 1
 
     def _ksp_started(self, ksp, b, x) -> None:
         self._ksp_start = time.perf_counter()
@@ -774,8 +831,10 @@ class ContactProblem(_Releasable):
                 not converge; otherwise return the result with ``converged=False``.
         """
         start = self.u.x.petsc_vec.copy()
+        self._may_keep = True
         try:
             while True:
+                self._factorisations = self._kept = 0
                 self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                 self._merit_is_energy, self._last_norm = True, np.inf
                 self.shifted_steps = 0
@@ -787,6 +846,11 @@ class ContactProblem(_Releasable):
                 self.snes.solve(None, self._x)
                 pc = self.snes.getKSP().getPC()
                 failed = self.snes.getConvergedReason() == LINEAR_SOLVE_FAILED
+                if failed and self._kept and self._may_keep:
+                    # GMRES did not converge on a kept factorisation: the solve again from its
+                    # start, factorising every Jacobian
+                    self._may_keep = False
+                    continue
                 if not (failed and self._choose_factorisation and pc.getType() == "cholesky"):
                     break
                 # MUMPS could not complete the LDL^T factorisation (seen: its workspace
@@ -804,6 +868,7 @@ class ContactProblem(_Releasable):
         result = SolveResult(
             reason > 0, reason, int(self.snes.getIterationNumber()), history,
             self.assembler.rejected_states, self.min_det_F(), self.shifted_steps,
+            self._factorisations,
         )  # fmt: skip
         if raise_on_failure and not result.converged:
             raise RuntimeError(result.failure_message())

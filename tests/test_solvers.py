@@ -86,6 +86,39 @@ def test_block_pressed_on_block_converges_quadratically():
     assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
 
 
+def test_the_default_direct_solver_keeps_its_factorisation():
+    """The default direct solver factorises fewer Jacobians than it takes Newton iterations
+    (GMRES preconditioned by the kept factorisation), converges as fast and to the solution of
+    a factorisation per iteration (``ksp_type: preonly``); where GMRES cannot converge on a
+    kept factorisation (here: one GMRES iteration allowed), the solve is repeated factorising
+    every Jacobian, and converges."""
+    comm = MPI.COMM_WORLD
+    runs, mesh = {}, None
+    for name, options in (
+        ("kept", None),
+        ("every", {"ksp_type": "preonly"}),
+        ("one_gmres_iteration", {"ksp_max_it": 1}),
+    ):
+        mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
+        bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+        contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+        with ContactProblem(
+            residual, u, contact, bcs=bcs, energy=energy, petsc_options=options
+        ) as problem:
+            result = problem.solve()
+        assert result.converged
+        _assert_quadratic(result.residual_norms)
+        runs[name] = (result.iterations, result.factorisations, u.x.petsc_vec.copy())
+    iterations, factorisations, x = runs["kept"]
+    assert 1 <= factorisations < iterations
+    assert abs(runs["every"][0] - iterations) <= 1 and runs["every"][1] == 0
+    difference = x.copy()
+    difference.axpy(-1.0, runs["every"][2])
+    assert difference.norm() <= 1e-8 * x.norm()
+    iterations, factorisations, _ = runs["one_gmres_iteration"]
+    assert factorisations == iterations
+
+
 def test_symmetric_jacobians_are_factorised_as_ldlt():
     """The Jacobian of an energy is symmetric: the default direct solver factorises it as
     LDL^T (MUMPS Cholesky, symmetric indefinite) and reaches LU's solution in as many
