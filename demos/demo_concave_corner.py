@@ -295,7 +295,10 @@ class Run:
 
     def _monitor(self, snes, iteration: int, residual_norm: float) -> None:
         x = snes.getSolution().array_r.copy()
-        if iteration > 0:
+        if iteration == 0:
+            # a solve repeated from its start (see ContactProblem.solve) counts once
+            self.step_lengths.clear()
+        else:
             newton_step = global_norm(snes.getSolutionUpdate().array_r)
             taken = global_norm(x - self._previous)
             self.step_lengths.append(taken / newton_step if newton_step > 0.0 else 0.0)

@@ -804,9 +804,9 @@ class ContactProblem(_Releasable):
                 iteration == 0
                 or rebuilt
                 or not self._may_keep
-                or snes.getKSP().getIterationNumber() > REFACTORISE_ITERATIONS
+                or self.snes.getKSP().getIterationNumber() > REFACTORISE_ITERATIONS
             )
-            set_lag_preconditioner(snes, -2 if self._factorise else -1)
+            set_lag_preconditioner(self.snes, -2 if self._factorise else -1)
             if self._factorise:
                 self._factorisations += 1
             else:

@@ -102,10 +102,10 @@ def test_the_default_direct_solver_keeps_its_factorisation():
         mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
         bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
         contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
-        with ContactProblem(
+        problem = ContactProblem(
             residual, u, contact, bcs=bcs, energy=energy, petsc_options=options
-        ) as problem:
-            result = problem.solve()
+        )
+        result = problem.solve()
         assert result.converged
         _assert_quadratic(result.residual_norms)
         runs[name] = (result.iterations, result.factorisations, u.x.petsc_vec.copy())
