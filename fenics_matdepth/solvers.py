@@ -59,15 +59,19 @@ _DEFAULT_OPTIONS = {
     "pc_factor_mat_solver_type": "mumps",
 }
 
-#: ContactProblem's default direct solver keeps a factorisation across the Newton iterations of
-#: a solve: each Jacobian is solved by GMRES (right-preconditioned, to KEPT_FACTORISATION_RTOL
-#: of the residual: an exact Newton step for the iteration) preconditioned by the last
+#: With ``keep_factorisation=True``, ContactProblem's direct solver keeps a factorisation
+#: across the Newton iterations of a solve: each Jacobian is solved by GMRES
+#: (right-preconditioned, to KEPT_FACTORISATION_RTOL of the residual: an exact Newton step for
+#: the iteration) preconditioned by the last
 #: factorisation, and a Jacobian is factorised anew at the first iteration of every solve,
 #: after the matrix's pattern was rebuilt, and once GMRES needed more than
-#: REFACTORISE_ITERATIONS iterations. A factorisation costs as much as 20 to 40 GMRES
-#: iterations on it (benchmarks/bench_steps.py's 40k tetrahedra: 0.9 s against 20 to 30 ms).
-#: On bench_steps this cut the 50 steps' linear solves from 141 s to 85 s, with the same
-#: Newton iterations (docs/solvers.md). Giving ``ksp_type`` or ``pc_type`` turns it off.
+#: REFACTORISE_ITERATIONS iterations. A factorisation costs as much as about 30 GMRES
+#: iterations on it (benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis and
+#: factorisation 0.84 s, one substitution 27 ms, one product with the matrix 0.5 ms).
+#: On bench_steps this cut the 50 steps' linear solves from 141 s to 81 s, with the same
+#: Newton iterations; on the knee's first 30 degrees it made the steps from the third on 1.3 to
+#: 1.9 times slower, with the same iterations, so it is not the default (docs/solvers.md).
+#: Giving ``ksp_type`` or ``pc_type`` turns it off.
 _KEPT_FACTORISATION_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_pc_side": "right",
@@ -212,9 +216,9 @@ class SolveResult:
         shifted_steps: Newton steps taken with the shifted Jacobian ``J + mu I`` because the
             Newton step would have climbed the energy (:class:`ContactProblem` with an energy
             and a MUMPS solver; see SHIFT_START).
-        factorisations: Jacobians factorised by :class:`ContactProblem`'s default direct
-            solver, which keeps a factorisation while GMRES on it converges fast (see
-            REFACTORISE_ITERATIONS); 0 for other linear solvers.
+        factorisations: Jacobians factorised by :class:`ContactProblem` with
+            ``keep_factorisation=True``, which keeps a factorisation while GMRES on it
+            converges fast (see REFACTORISE_ITERATIONS); 0 otherwise.
     """
 
     converged: bool
@@ -504,13 +508,16 @@ class ContactProblem(_Releasable):
         petsc_options: options set under the prefix (defaults: newtonls, bt line search, MUMPS
             direct solve, rtol 1e-10, atol 1e-12, at most 50 iterations). Unless ``pc_type``
             is given, MUMPS factorises each Jacobian that is symmetric (every problem with an
-            energy) as LDL^T and any other as LU (``solvers.choose_factorisation``), and keeps
-            a factorisation across a solve's Newton iterations as GMRES's preconditioner until
-            GMRES needs more than REFACTORISE_ITERATIONS iterations (``ksp_type: preonly``
-            factorises every Jacobian instead). From
+            energy) as LDL^T and any other as LU (``solvers.choose_factorisation``). From
             AMG_MIN_DOFS global dofs on, unless ``ksp_type`` or ``pc_type`` is given, the
             linear solver is GMRES with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
             (:func:`~fenics_matdepth.rigid_body_modes`) are set as the matrix's near-nullspace.
+        keep_factorisation: with the default direct solver, keep a factorisation across a
+            solve's Newton iterations as the preconditioner of GMRES, factorising anew at a
+            solve's first iteration, after a pattern rebuild, and once GMRES needed more than
+            REFACTORISE_ITERATIONS iterations (a GMRES failure repeats the solve factorising
+            every Jacobian). Pays where Newton steps are few and the Jacobian changes little
+            within a solve (bench_steps: 1.45 times faster); measured slower on the knee.
 
     Attributes:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
@@ -530,6 +537,7 @@ class ContactProblem(_Releasable):
         energy: ufl.Form | None = None,
         petsc_options_prefix: str = "matdepth_",
         petsc_options: dict | None = None,
+        keep_factorisation: bool = False,
     ):
         _check_problem_inputs(u, contact, bcs)
         self.u = u
@@ -563,7 +571,7 @@ class ContactProblem(_Releasable):
             del options["pc_factor_mat_solver_type"]
         elif "pc_type" not in user:  # LDL^T or LU, chosen per Jacobian (choose_factorisation)
             options["mat_mumps_icntl_14"] = LDLT_WORKSPACE_PERCENT
-            if "ksp_type" not in user:
+            if keep_factorisation and "ksp_type" not in user:
                 options.update(_KEPT_FACTORISATION_OPTIONS)
         opts = PETSc.Options()
         opts.prefixPush(self.prefix)
@@ -586,9 +594,10 @@ class ContactProblem(_Releasable):
         ksp.setFromOptions()
         # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
         self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
-        # the default direct solver keeps its factorisation (_KEPT_FACTORISATION_OPTIONS)
+        # the direct solver keeps its factorisation (_KEPT_FACTORISATION_OPTIONS)
         self._keep_factorisation = (
-            self._choose_factorisation
+            keep_factorisation
+            and self._choose_factorisation
             and "ksp_type" not in user
             and not {"snes_lag_preconditioner", "snes_lag_jacobian"} & set(user)
         )
