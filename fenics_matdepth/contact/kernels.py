@@ -34,6 +34,7 @@ from fenics_matdepth.geometry.clip import (
     MAX_POLYGON_VERTICES,
     SHIFT_TANGENT,
     _clip,
+    _edges_and_normal,
     _intersect_pairs,
     _tet_gradients,
     _triangle_area2,
@@ -296,15 +297,7 @@ def _clip_shift_jacobian(xs, ds):
     L`` and, for a move ``e`` of corner 0, 1, 2: ``(da, dn) = (-e, e x (a - b))``, ``(e, e x
     b)``, ``(0, a x e)`` (``b = x2 - x0``). Called only for triangles of non-zero area.
     """
-    ax = xs[1, 0] - xs[0, 0]
-    ay = xs[1, 1] - xs[0, 1]
-    az = xs[1, 2] - xs[0, 2]
-    bx = xs[2, 0] - xs[0, 0]
-    by = xs[2, 1] - xs[0, 1]
-    bz = xs[2, 2] - xs[0, 2]
-    nx = ay * bz - az * by
-    ny = az * bx - ax * bz
-    nz = ax * by - ay * bx
+    ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(xs)
     # n x a
     wx = ny * az - nz * ay
     wy = nz * ax - nx * az
@@ -390,14 +383,15 @@ def _shift_hessian(hess, p, ds, tmp):
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up). The same holds
 # for every helper of this module and of geometry/clip.py: none is IR-inlined any more.
 @njit(cache=True)
-def _no_contribution(grad, hess, p, want_grad, want_hess):
-    """Zero row p of the wanted outputs of a pair that does not contribute; returns -1.0."""
+def _no_contribution(grad, hess, p, n, want_grad, want_hess):
+    """Zero row p of the wanted outputs (n dofs a pair) of a pair that does not contribute;
+    returns -1.0."""
     if want_grad:
-        for c in range(21):
+        for c in range(n):
             grad[p, c] = 0.0
     if want_hess:
-        for c in range(21):
-            for c2 in range(21):
+        for c in range(n):
+            for c2 in range(n):
                 hess[p, c, c2] = 0.0
     return -1.0
 
@@ -453,13 +447,13 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     # a contributing pair writes every entry of its outputs; the others are zeroed here
     a2 = _triangle_area2(xs)
     if a2 == 0.0:
-        return _no_contribution(grad, hess, p, want_grad, want_hess)
+        return _no_contribution(grad, hess, p, 21, want_grad, want_hess)
     if _tet_gradients(xt, grads) == 0.0:
-        return _no_contribution(grad, hess, p, want_grad, want_hess)
+        return _no_contribution(grad, hess, p, 21, want_grad, want_hess)
     _triangle_rows(xs, xt, grads, lam)
     n = _clip(lam, mu, vlab, elab)
     if n < 3:
-        return _no_contribution(grad, hess, p, want_grad, want_hess)
+        return _no_contribution(grad, hess, p, 21, want_grad, want_hess)
     area = 0.5 * a2
     g0 = lam[0, 0] * dt[0] + lam[0, 1] * dt[1] + lam[0, 2] * dt[2] + lam[0, 3] * dt[3]
     g1 = lam[1, 0] * dt[0] + lam[1, 1] * dt[1] + lam[1, 2] * dt[2] + lam[1, 3] * dt[3]
@@ -1369,13 +1363,7 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, g
 
     ``E = (eps/2) W g^2`` with ``g = sum_j lambda_j(x_a) d_j`` when every ``lambda_j >= 0``.
     """
-    if want_grad:
-        for c in range(15):
-            grad[p, c] = 0.0
-    if want_hess:
-        for c in range(15):
-            for c2 in range(15):
-                hess[p, c, c2] = 0.0
+    _no_contribution(grad, hess, p, 15, want_grad, want_hess)
     grads, lam, gg, dg = work
     if _tet_gradients(xt, grads) == 0.0:
         return 0.0
