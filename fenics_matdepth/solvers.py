@@ -69,8 +69,9 @@ _DEFAULT_OPTIONS = {
 #: iterations on it (benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis and
 #: factorisation 0.84 s, one substitution 27 ms, one product with the matrix 0.5 ms).
 #: On bench_steps this cut the 50 steps' linear solves from 141 s to 81 s, with the same
-#: Newton iterations; on the knee's first 30 degrees it made the steps from the third on 1.3 to
-#: 1.9 times slower, with the same iterations, so it is not the default (docs/solvers.md).
+#: Newton iterations; on the knee's first 30 degrees it made the flexion slower (137.0 s
+#: against 110.2 s; steps from the third on 1.1 to 1.9 times), with the same iterations, so it
+#: is not the default (docs/solvers.md).
 #: Giving ``ksp_type`` or ``pc_type`` turns it off.
 _KEPT_FACTORISATION_OPTIONS = {
     "ksp_type": "gmres",
