@@ -61,7 +61,7 @@ _DEFAULT_OPTIONS = {
 
 #: With ``keep_factorisation=True``, ContactProblem's direct solver keeps a factorisation
 #: across the Newton iterations of a solve: each Jacobian is solved by GMRES
-#: (right-preconditioned, to KEPT_FACTORISATION_RTOL of the residual: an exact Newton step for
+#: (right-preconditioned, to 1e-10 of the residual: an exact Newton step for
 #: the iteration) preconditioned by the last
 #: factorisation, and a Jacobian is factorised anew at the first iteration of every solve,
 #: after the matrix's pattern was rebuilt, and once GMRES needed more than
@@ -82,7 +82,6 @@ _KEPT_FACTORISATION_OPTIONS = {
     "ksp_max_it": 100,
     "ksp_gmres_restart": 100,
 }
-KEPT_FACTORISATION_RTOL = _KEPT_FACTORISATION_OPTIONS["ksp_rtol"]
 REFACTORISE_ITERATIONS = 10
 
 #: From this many global dofs on, ContactProblem's default linear solver is GMRES preconditioned

@@ -182,6 +182,12 @@ def _triangle_rows(x_tri, x_tet, grads, lam):
     """``lam[i, j] = lambda_j(x_tri[i] + shift)`` for the 3 triangle corners, moved by the
     consistent clip shift (CLIP_SHIFT) along the triangle's normal."""
     sx, sy, sz = _clip_shift(x_tri)
+    _shifted_rows(x_tri, x_tet, grads, sx, sy, sz, lam)
+
+
+@njit(cache=True)
+def _shifted_rows(x_tri, x_tet, grads, sx, sy, sz, lam):
+    """`_triangle_rows` with the triangle's clip shift ``(sx, sy, sz)`` given."""
     for i in range(3):
         dx = (x_tri[i, 0] - x_tet[0, 0]) + sx
         dy = (x_tri[i, 1] - x_tet[0, 1]) + sy
@@ -377,58 +383,13 @@ def _intersection_polygon(x_tri, x_tet, mu, vlab, elab):
 
 
 @njit(cache=True)
-def _dist2(ax, ay, az, bx, by, bz):
-    """Squared distance of two points, as `_tet_gradients` computes it."""
-    dx = ax - bx
-    dy = ay - by
-    dz = az - bz
-    return dx * dx + dy * dy + dz * dz
-
-
-@njit(cache=True)
-def _triangle_shift_area2(x_tri):
-    """The clip shift (`_clip_shift`) and twice the area (`_triangle_area2`) of a triangle, as a
-    4-tuple (sx, sy, sz, area2): both in one pass, sharing the edges, the normal and its length
-    (the same expressions, hence the same values as the two functions)."""
-    ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(x_tri)
-    a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
-    la2 = ax * ax + ay * ay + az * az
-    la = np.sqrt(la2)
-    cx = x_tri[2, 0] - x_tri[1, 0]
-    cy = x_tri[2, 1] - x_tri[1, 1]
-    cz = x_tri[2, 2] - x_tri[1, 2]
-    h2 = max(la2, bx * bx + by * by + bz * bz, cx * cx + cy * cy + cz * cz)
-    area2 = a2 if a2 > TRI_AREA_RTOL * h2 else 0.0
-    if not (a2 > 0.0 and la > 0.0):
-        return 0.0, 0.0, 0.0, area2
-    f = CLIP_SHIFT / np.sqrt(a2)
-    c1 = SHIFT_TANGENT[0] * a2 / la
-    c2 = SHIFT_TANGENT[1] / la
-    return (
-        f * (nx + c1 * ax + c2 * (ny * az - nz * ay)),
-        f * (ny + c1 * ay + c2 * (nz * ax - nx * az)),
-        f * (nz + c1 * az + c2 * (nx * ay - ny * ax)),
-        area2,
-    )
-
-
-@njit(cache=True)
-def _snapped(v, tol):
-    """``v``, or 0.0 within ``tol`` (`_snap` on one value; a select, not a branch)."""
-    return 0.0 if abs(v) <= tol else v
-
-
-@njit(cache=True)
 def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     """Intersection test for many pairs: ``out[p] = True`` where the polygon is non-empty.
 
     The decisions of `_tet_gradients`, `_triangle_rows`, `_snap`, `_clip_nonempty` and
-    `_triangle_area2`, with the same floating-point operations in the same order (hence the
-    same flags), written out on scalars: the triangle's clip shift and area are computed once
-    per run of pairs with the same triangle (a broad phase delivers candidates grouped by
-    triangle), a zero-area triangle's pairs are dropped before their tetrahedra are read, and
-    the snapping and the face-plane and corner tests are selects and bit masks rather than
-    branches.
+    `_triangle_area2`; a triangle's clip shift and area are computed once per run of pairs with
+    the same triangle (a broad phase delivers candidates grouped by triangle), and a zero-area
+    triangle's pairs are dropped before their tetrahedra are read.
 
     Args:
         x: (nv, 3) current vertex coordinates.
@@ -440,7 +401,9 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     Returns:
         Number of intersecting pairs.
     """
+    grads = np.empty((4, 3), dtype=FLOAT)
     lam = np.empty((3, 4), dtype=FLOAT)
+    xt = np.empty((4, 3), dtype=FLOAT)
     xs = np.empty((3, 3), dtype=FLOAT)
     buf = np.empty((2, MAX_POLYGON_VERTICES, 4), dtype=FLOAT)
     count = 0
@@ -454,104 +417,30 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
             for a in range(3):
                 for r in range(3):
                     xs[a, r] = x[tri[t, a], r]
-            sx, sy, sz, area2 = _triangle_shift_area2(xs)
-        # a zero-area triangle meets nothing
-        if not (area2 > 0.0):
+            area2 = _triangle_area2(xs)
+            sx, sy, sz = _clip_shift(xs)
+        if area2 == 0.0:
             continue
-        k = pair_tet[p]
-        v0 = tet[k, 0]
-        v1 = tet[k, 1]
-        v2 = tet[k, 2]
-        v3 = tet[k, 3]
-        p0x = x[v0, 0]
-        p0y = x[v0, 1]
-        p0z = x[v0, 2]
-        p1x = x[v1, 0]
-        p1y = x[v1, 1]
-        p1z = x[v1, 2]
-        p2x = x[v2, 0]
-        p2y = x[v2, 1]
-        p2z = x[v2, 2]
-        p3x = x[v3, 0]
-        p3y = x[v3, 1]
-        p3z = x[v3, 2]
-        # _tet_gradients, term by term
-        e1x = p1x - p0x
-        e1y = p1y - p0y
-        e1z = p1z - p0z
-        e2x = p2x - p0x
-        e2y = p2y - p0y
-        e2z = p2z - p0z
-        e3x = p3x - p0x
-        e3y = p3y - p0y
-        e3z = p3z - p0z
-        c1x = e2y * e3z - e2z * e3y
-        c1y = e2z * e3x - e2x * e3z
-        c1z = e2x * e3y - e2y * e3x
-        c2x = e3y * e1z - e3z * e1y
-        c2y = e3z * e1x - e3x * e1z
-        c2z = e3x * e1y - e3y * e1x
-        c3x = e1y * e2z - e1z * e2y
-        c3y = e1z * e2x - e1x * e2z
-        c3z = e1x * e2y - e1y * e2x
-        det = e1x * c1x + e1y * c1y + e1z * c1z
-        h2 = 0.0
-        h2 = max(h2, _dist2(p0x, p0y, p0z, p1x, p1y, p1z))
-        h2 = max(h2, _dist2(p0x, p0y, p0z, p2x, p2y, p2z))
-        h2 = max(h2, _dist2(p0x, p0y, p0z, p3x, p3y, p3z))
-        h2 = max(h2, _dist2(p1x, p1y, p1z, p2x, p2y, p2z))
-        h2 = max(h2, _dist2(p1x, p1y, p1z, p3x, p3y, p3z))
-        h2 = max(h2, _dist2(p2x, p2y, p2z, p3x, p3y, p3z))
-        if not (abs(det) > TET_VOLUME_RTOL * h2 * np.sqrt(h2)):
+        for a in range(4):
+            for r in range(3):
+                xt[a, r] = x[tet[pair_tet[p], a], r]
+        if _tet_gradients(xt, grads) == 0.0:
             continue
-        inv = 1.0 / det
-        g1x = c1x * inv
-        g1y = c1y * inv
-        g1z = c1z * inv
-        g2x = c2x * inv
-        g2y = c2y * inv
-        g2z = c2z * inv
-        g3x = c3x * inv
-        g3y = c3y * inv
-        g3z = c3z * inv
-        # _triangle_rows and _snap, corner by corner; sign masks of the snapped values
-        neg = np.uint32(0)
-        pos = np.uint32(0)
+        _shifted_rows(xs, xt, grads, sx, sy, sz, lam)
+        _snap(lam)
+        # a tetrahedron face plane separating the triangle settles it without clipping, and
+        # so does a triangle vertex strictly inside the tetrahedron
+        separated = False
+        inside = False
+        for j in range(4):
+            if lam[0, j] < 0.0 and lam[1, j] < 0.0 and lam[2, j] < 0.0:
+                separated = True
+        if separated:
+            continue
         for i in range(3):
-            dx = (xs[i, 0] - p0x) + sx
-            dy = (xs[i, 1] - p0y) + sy
-            dz = (xs[i, 2] - p0z) + sz
-            l1 = g1x * dx + g1y * dy + g1z * dz
-            l2 = g2x * dx + g2y * dy + g2z * dz
-            l3 = g3x * dx + g3y * dy + g3z * dz
-            s = 0.0
-            s += l1
-            s += l2
-            s += l3
-            l0 = 1.0 - s
-            tol = CLIP_TOL * (1.0 + abs(l0) + abs(l1) + abs(l2) + abs(l3))
-            l0 = _snapped(l0, tol)
-            l1 = _snapped(l1, tol)
-            l2 = _snapped(l2, tol)
-            l3 = _snapped(l3, tol)
-            lam[i, 0] = l0
-            lam[i, 1] = l1
-            lam[i, 2] = l2
-            lam[i, 3] = l3
-            sh = np.uint32(4 * i)
-            neg |= (
-                (np.uint32(l0 < 0.0) | (np.uint32(l1 < 0.0) << np.uint32(1)))
-                | ((np.uint32(l2 < 0.0) << np.uint32(2)) | (np.uint32(l3 < 0.0) << np.uint32(3)))
-            ) << sh
-            pos |= (
-                (np.uint32(l0 > 0.0) & np.uint32(l1 > 0.0))
-                & (np.uint32(l2 > 0.0) & np.uint32(l3 > 0.0))
-            ) << np.uint32(i)
-        # a face plane with all three corners strictly outside separates the triangle
-        if (neg & (neg >> np.uint32(4)) & (neg >> np.uint32(8)) & np.uint32(15)) != 0:
-            continue
-        # a corner strictly inside, else the clipper decides
-        if pos != 0 or _clip_nonempty(lam, buf):
+            if lam[i, 0] > 0.0 and lam[i, 1] > 0.0 and lam[i, 2] > 0.0 and lam[i, 3] > 0.0:
+                inside = True
+        if inside or _clip_nonempty(lam, buf):
             out[p] = True
             count += 1
     return count
