@@ -564,6 +564,10 @@ class ContactProblem(_Releasable):
         self.snes.setOptionsPrefix(self.prefix)
         options = dict(_DEFAULT_OPTIONS)
         user = petsc_options or {}
+        # a user's linear solver or preconditioner lag comes first
+        keep_factorisation = keep_factorisation and not {
+            "ksp_type", "pc_type", "snes_lag_preconditioner", "snes_lag_jacobian"
+        } & set(user)  # fmt: skip
         dofmap = u.function_space.dofmap
         num_dofs = dofmap.index_map.size_global * dofmap.index_map_bs
         if num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user):
@@ -571,7 +575,7 @@ class ContactProblem(_Releasable):
             del options["pc_factor_mat_solver_type"]
         elif "pc_type" not in user:  # LDL^T or LU, chosen per Jacobian (choose_factorisation)
             options["mat_mumps_icntl_14"] = LDLT_WORKSPACE_PERCENT
-            if keep_factorisation and "ksp_type" not in user:
+            if keep_factorisation:
                 options.update(_KEPT_FACTORISATION_OPTIONS)
         opts = PETSc.Options()
         opts.prefixPush(self.prefix)
@@ -595,12 +599,7 @@ class ContactProblem(_Releasable):
         # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
         self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
         # the direct solver keeps its factorisation (_KEPT_FACTORISATION_OPTIONS)
-        self._keep_factorisation = (
-            keep_factorisation
-            and self._choose_factorisation
-            and "ksp_type" not in user
-            and not {"snes_lag_preconditioner", "snes_lag_jacobian"} & set(user)
-        )
+        self._keep_factorisation = keep_factorisation and self._choose_factorisation
         self._factorise = True  # whether the coming Jacobian is factorised
         self._factorisations = self._kept = 0
         self._may_keep = True
