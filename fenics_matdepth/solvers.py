@@ -61,28 +61,34 @@ _DEFAULT_OPTIONS = {
 
 #: With ``keep_factorisation=True``, ContactProblem's direct solver keeps a factorisation
 #: across the Newton iterations of a solve: each Jacobian is solved by GMRES
-#: (right-preconditioned, to 1e-10 of the residual: an exact Newton step for
-#: the iteration) preconditioned by the last
-#: factorisation, and a Jacobian is factorised anew at the first iteration of every solve,
-#: after the matrix's pattern was rebuilt, and once GMRES needed more than
-#: REFACTORISE_ITERATIONS iterations. A factorisation costs as much as about 30 GMRES
-#: iterations on it (benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis and
-#: factorisation 0.84 s, one substitution 27 ms, one product with the matrix 0.5 ms).
-#: On bench_steps this cut the 50 steps' linear solves from 141 s to 81 s, with the same
-#: Newton iterations; on the knee's first 30 degrees it made the flexion slower (137.0 s
-#: against 110.2 s; steps from the third on 1.1 to 1.9 times), with the same iterations, so it
-#: is not the default (docs/solvers.md).
+#: (right-preconditioned, to 1e-10 of the residual: an exact Newton step for the iteration)
+#: preconditioned by the last factorisation. A Jacobian is factorised anew at the first
+#: iteration of every solve, after the matrix's pattern was rebuilt, and once GMRES needed more
+#: than REFACTORISE_ITERATIONS iterations; GMRES stops after KEPT_MAX_ITERATIONS (about the
+#: cost of one factorisation on benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis
+#: and factorisation 0.84 s, one substitution 27 ms, a product with the matrix 0.5 ms), and
+#: the solve then goes on from the iterate it had reached with a new factorisation. Where
+#: keeping does not pay (the first GMRES on a new factorisation needs more than
+#: KEPT_PAYS_ITERATIONS, KEPT_TRIES times in a solve), the solve factorises every Jacobian
+#: from then on and the problem's next solves do not try (1, 2, 4, ... solves, until a kept
+#: factorisation pays again). (Once is common: a load step's first Newton step changes the
+#: contact set.) GMRES iterations that cost one factorisation, measured: about 31 on the
+#: press, 13 on the knee's coarse leg (0.22 s against 16 ms); its first GMRES on a new
+#: factorisation took 21 to 61 iterations, the press's 3 to 11.
 #: Giving ``ksp_type`` or ``pc_type`` turns it off.
+REFACTORISE_ITERATIONS = 10
+KEPT_PAYS_ITERATIONS = 20
+KEPT_MAX_ITERATIONS = 30
+KEPT_TRIES = 2
 _KEPT_FACTORISATION_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_pc_side": "right",
     "ksp_norm_type": "unpreconditioned",
     "ksp_rtol": 1e-10,
     "ksp_atol": 0.0,
-    "ksp_max_it": 100,
-    "ksp_gmres_restart": 100,
+    "ksp_max_it": KEPT_MAX_ITERATIONS,
+    "ksp_gmres_restart": KEPT_MAX_ITERATIONS,
 }
-REFACTORISE_ITERATIONS = 10
 
 #: From this many global dofs on, ContactProblem's default linear solver is GMRES preconditioned
 #: by GAMG with the rigid-body near-nullspace (_AMG_OPTIONS) instead of MUMPS LU. Measured with
@@ -513,11 +519,14 @@ class ContactProblem(_Releasable):
             linear solver is GMRES with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
             (:func:`~fenics_matdepth.rigid_body_modes`) are set as the matrix's near-nullspace.
         keep_factorisation: with the default direct solver, keep a factorisation across a
-            solve's Newton iterations as the preconditioner of GMRES, factorising anew at a
-            solve's first iteration, after a pattern rebuild, and once GMRES needed more than
-            REFACTORISE_ITERATIONS iterations (a GMRES failure repeats the solve factorising
-            every Jacobian). Pays where Newton steps are few and the Jacobian changes little
-            within a solve (bench_steps: 1.45 times faster); measured slower on the knee.
+            solve's Newton iterations as the preconditioner of GMRES (exact Newton steps: to
+            1e-10 of the residual), factorising anew at a solve's first iteration, after a
+            pattern rebuild, and once GMRES needed more than REFACTORISE_ITERATIONS
+            iterations; a GMRES failure goes on from the iterate reached with a new
+            factorisation. Where keeping does not pay (the first GMRES on a new
+            factorisation needs more than KEPT_PAYS_ITERATIONS, twice in a solve), the solve
+            factorises every Jacobian and the problem's next solves do not try (see
+            _KEPT_FACTORISATION_OPTIONS). ``False``: a factorisation per iteration.
 
     Attributes:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
@@ -601,8 +610,15 @@ class ContactProblem(_Releasable):
         # the direct solver keeps its factorisation (_KEPT_FACTORISATION_OPTIONS)
         self._keep_factorisation = keep_factorisation and self._choose_factorisation
         self._factorise = True  # whether the coming Jacobian is factorised
-        self._factorisations = self._kept = 0
-        self._may_keep = True
+        self._factorisations = self._kept_since_factorisation = 0
+        self._may_keep = True  # whether this solve may keep a factorisation
+        # kept factorisations of this solve whose GMRES paid or did not (REFACTORISE_ITERATIONS)
+        self._kept_paid = self._kept_unpaid = self._failed_tries = 0
+        # solves left, and solves to leave next time, that factorise every Jacobian
+        self._keep_skip = self._keep_backoff = 0
+        # the solve goes on from the iterate reached (a kept factorisation's GMRES failed)
+        self._resuming = False
+        self._iteration_offset = 0
         #: Newton steps of the last solve taken with the shifted Jacobian (_shifted_direction)
         self.shifted_steps = 0
         if ksp.getPC().getType() == "gamg":
@@ -674,7 +690,8 @@ class ContactProblem(_Releasable):
         if not np.isfinite(fnorm):
             return NAN_REASON
         if iteration == 0:
-            self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
+            if not self._resuming:
+                self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
             return reasons.CONVERGED_FNORM_ABS if fnorm < atol else reasons.ITERATING
         if fnorm < atol:
             return reasons.CONVERGED_FNORM_ABS
@@ -692,7 +709,7 @@ class ContactProblem(_Releasable):
             if fnorm <= ROUNDING_FLOOR_RTOL * self._initial_norm:
                 return reasons.CONVERGED_SNORM_RELATIVE
             return reasons.DIVERGED_LINE_SEARCH
-        if iteration >= max_it:
+        if iteration + self._iteration_offset >= max_it:
             return reasons.DIVERGED_MAX_IT
         return reasons.ITERATING
 
@@ -788,7 +805,8 @@ class ContactProblem(_Releasable):
         """
         norm = snes.getFunctionNorm()
         if iteration == 0:
-            self._first_norm = norm
+            if not self._resuming:
+                self._first_norm = norm
         elif norm <= MERIT_SWITCH_RTOL * self._first_norm or (
             # only a step the energy judged tells that the energy stalled
             self._merit_is_energy and abs(norm - self._last_norm) <= STALL_RTOL * self._last_norm
@@ -808,17 +826,34 @@ class ContactProblem(_Releasable):
         if self._keep_factorisation:
             # factorise at a solve's start, on a new pattern, and once the kept factorisation
             # no longer pays (GMRES iterations are counted on every rank alike)
+            gmres_iterations = self.snes.getKSP().getIterationNumber()
+            if iteration > 0 and not self._factorise:
+                self._count_kept(gmres_iterations <= KEPT_PAYS_ITERATIONS)
             self._factorise = (
                 iteration == 0
                 or rebuilt
                 or not self._may_keep
-                or self.snes.getKSP().getIterationNumber() > REFACTORISE_ITERATIONS
+                or gmres_iterations > REFACTORISE_ITERATIONS
             )
             set_lag_preconditioner(self.snes, -2 if self._factorise else -1)
             if self._factorise:
                 self._factorisations += 1
+                self._kept_since_factorisation = 0
             else:
-                self._kept += 1
+                self._kept_since_factorisation += 1
+
+    def _count_kept(self, paid: bool) -> None:
+        """Count a Newton step solved on a kept factorisation: ``paid`` if GMRES took at most
+        KEPT_PAYS_ITERATIONS. Once the first GMRES on a new factorisation did not pay
+        KEPT_TRIES times, the Jacobian changes too much from one iteration to the next: the
+        rest of the solve factorises every Jacobian."""
+        if paid:
+            self._kept_paid += 1
+            return
+        self._kept_unpaid += 1
+        if self._kept_since_factorisation == 1:
+            self._failed_tries += 1
+            self._may_keep = self._failed_tries < KEPT_TRIES
 
     def _ksp_started(self, ksp, b, x) -> None:
         self._ksp_start = time.perf_counter()
@@ -839,25 +874,36 @@ class ContactProblem(_Releasable):
                 not converge; otherwise return the result with ``converged=False``.
         """
         start = self.u.x.petsc_vec.copy()
-        self._may_keep = True
+        # a solve keeps factorisations unless the last ones that tried found it did not pay
+        self._may_keep = self._keep_skip == 0
+        self._keep_skip = max(self._keep_skip - 1, 0)
+        self._kept_paid = self._kept_unpaid = self._failed_tries = 0
+        history = []
         try:
             while True:
-                self._factorisations = self._kept = 0
-                self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
-                self._merit_is_energy, self._last_norm = True, np.inf
-                self.shifted_steps = 0
-                self._energy_merit_allowed, self._bcs_met = True, False
-                self.assembler.rejected_states = 0
-                self._trial_valid = False  # the load may have changed since
-                start.copy(self._x)
+                if not self._resuming:
+                    self._factorisations = self._iteration_offset = 0
+                    self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
+                    self._merit_is_energy, self._last_norm = True, np.inf
+                    self.shifted_steps = 0
+                    self._energy_merit_allowed, self._bcs_met = True, False
+                    self.assembler.rejected_states = 0
+                    self._trial_valid = False  # the load may have changed since
+                    start.copy(self._x)
+                    history = []
                 self.snes.setConvergenceHistory(reset=True)
                 self.snes.solve(None, self._x)
+                norms = list(self.snes.getConvergenceHistory()[0])
+                history += norms[1:] if self._resuming else norms
+                self._iteration_offset += int(self.snes.getIterationNumber())
+                self._resuming = False
                 pc = self.snes.getKSP().getPC()
                 failed = self.snes.getConvergedReason() == LINEAR_SOLVE_FAILED
-                if failed and self._kept and self._may_keep:
-                    # GMRES did not converge on a kept factorisation: the solve again from its
-                    # start, factorising every Jacobian
-                    self._may_keep = False
+                if failed and self._keep_factorisation and not self._factorise:
+                    # GMRES did not converge on a kept factorisation: on from the iterate
+                    # reached (SNES leaves it in _x), whose Jacobian is factorised
+                    self._count_kept(False)
+                    self._resuming = True
                     continue
                 if not (failed and self._choose_factorisation and pc.getType() == "cholesky"):
                     break
@@ -869,12 +915,17 @@ class ContactProblem(_Releasable):
                 pc.setFactorSolverType("mumps")
         finally:
             start.destroy()
+            self._resuming = False
+        if self._kept_unpaid and not self._kept_paid:
+            self._keep_backoff = max(1, 2 * self._keep_backoff)
+            self._keep_skip = self._keep_backoff
+        elif self._kept_paid:
+            self._keep_backoff = 0
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
-        history = np.asarray(self.snes.getConvergenceHistory()[0], dtype=float)
         reason = int(self.snes.getConvergedReason())
         result = SolveResult(
-            reason > 0, reason, int(self.snes.getIterationNumber()), history,
+            reason > 0, reason, self._iteration_offset, np.asarray(history, dtype=float),
             self.assembler.rejected_states, self.min_det_F(), self.shifted_steps,
             self._factorisations,
         )  # fmt: skip

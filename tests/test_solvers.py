@@ -89,9 +89,11 @@ def test_block_pressed_on_block_converges_quadratically():
 def test_a_kept_factorisation():
     """With ``keep_factorisation=True`` the direct solver factorises fewer Jacobians than it
     takes Newton iterations (GMRES preconditioned by the kept factorisation), converges as fast
-    and to the solution of the default (a factorisation per iteration); where GMRES cannot
-    converge on a kept factorisation (here: one GMRES iteration allowed), the solve is repeated
-    factorising every Jacobian, and converges."""
+    and to the solution of the default (a factorisation per iteration). Where GMRES cannot
+    converge on a kept factorisation (here: one GMRES iteration allowed), the solve goes on
+    from the iterate reached, factorising every Jacobian, and converges as fast; the problem's
+    next solve then does not try to keep a factorisation (one linear solve per iteration), the
+    one after tries again."""
     comm = MPI.COMM_WORLD
     runs, mesh = {}, None
     for name, options, keep in (
@@ -100,24 +102,50 @@ def test_a_kept_factorisation():
         ("one_gmres_iteration", {"ksp_max_it": 1}, True),
     ):
         mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
-        bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+        bcs, push = _press_bcs(mesh, V, 0.9, -0.02)
         contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
-        problem = ContactProblem(
+        results = []
+        with ContactProblem(
             residual, u, contact, bcs=bcs, energy=energy, petsc_options=options,
             keep_factorisation=keep,
-        )  # fmt: skip
-        result = problem.solve()
-        assert result.converged
-        _assert_quadratic(result.residual_norms)
-        runs[name] = (result.iterations, result.factorisations, u.x.petsc_vec.copy())
-    iterations, factorisations, x = runs["kept"]
-    assert 1 <= factorisations < iterations
-    assert abs(runs["every"][0] - iterations) <= 1 and runs["every"][1] == 0
-    difference = x.copy()
-    difference.axpy(-1.0, runs["every"][2])
-    assert difference.norm() <= 1e-8 * x.norm()
-    iterations, factorisations, _ = runs["one_gmres_iteration"]
-    assert factorisations == iterations
+        ) as problem:  # fmt: skip
+            linear_solves = []
+            problem.snes.getKSP().setMonitor(
+                lambda ksp, its, rnorm, solves=linear_solves: (
+                    solves.append(its) if its == 0 else None
+                )
+            )
+            for depth in (-0.02, -0.03, -0.04):
+                push.x.array.reshape(-1, 3)[:, 2] = depth
+                del linear_solves[:]
+                result = problem.solve()
+                assert result.converged
+                _assert_quadratic(result.residual_norms)
+                assert len(result.residual_norms) == result.iterations + 1
+                results.append((result.iterations, result.factorisations, len(linear_solves)))
+        # u, not a PETSc copy of u.x.petsc_vec, which needs u's space (docs/solvers.md)
+        runs[name] = (results, u)
+    kept, every = runs["kept"][0], runs["every"][0]
+    for (iterations, factorisations, _), (every_iterations, none, _) in zip(
+        kept, every, strict=True
+    ):
+        assert 1 <= factorisations < iterations
+        assert abs(every_iterations - iterations) <= 1 and none == 0
+    kept_x, every_x = runs["kept"][1].x.petsc_vec, runs["every"][1].x.petsc_vec
+    difference = kept_x.copy()
+    difference.axpy(-1.0, every_x)
+    assert difference.norm() <= 1e-8 * kept_x.norm()
+    difference.destroy()
+    failing = runs["one_gmres_iteration"][0]
+    for (iterations, factorisations, _), (every_iterations, _, _) in zip(
+        failing, every, strict=True
+    ):
+        assert factorisations == iterations
+        assert abs(every_iterations - iterations) <= 1
+    # the first and third solve tried to keep a factorisation KEPT_TRIES times (as many failed
+    # linear solves more than iterations), the second did not try
+    tries = solvers.KEPT_TRIES
+    assert [solves - iterations for iterations, _, solves in failing] == [tries, 0, tries]
 
 
 def test_symmetric_jacobians_are_factorised_as_ldlt():
