@@ -59,29 +59,30 @@ _DEFAULT_OPTIONS = {
     "pc_factor_mat_solver_type": "mumps",
 }
 
-#: With ``keep_factorisation=True``, ContactProblem's direct solver keeps a factorisation
-#: across the Newton iterations of a solve: each Jacobian is solved by GMRES
-#: (right-preconditioned, to 1e-10 of the residual: an exact Newton step for the iteration)
-#: preconditioned by the last factorisation. A Jacobian is factorised anew at the first
-#: iteration of every solve, after the matrix's pattern was rebuilt, and once GMRES needed more
-#: than REFACTORISE_ITERATIONS iterations; GMRES stops after KEPT_MAX_ITERATIONS (about the
-#: cost of one factorisation on benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis
-#: and factorisation 0.84 s, one substitution 27 ms, a product with the matrix 0.5 ms), and
-#: the solve then goes on from the iterate it had reached with a new factorisation. Where
-#: keeping does not pay (the first GMRES on a new factorisation needs more than
-#: KEPT_PAYS_ITERATIONS, KEPT_TRIES times in a solve), the solve factorises every Jacobian
-#: from then on and the problem's next solves do not try (1, 2, 4, ... solves, until a kept
-#: factorisation pays again). (Once is common: a load step's first Newton step changes the
-#: contact set.) GMRES iterations that cost one factorisation, measured: about 31 on the
-#: press, 13 on the knee's coarse leg (0.22 s against 16 ms); its first GMRES on a new
-#: factorisation took 21 to 61 iterations, the press's 3 to 11.
-#: Giving ``ksp_type`` or ``pc_type`` turns it off.
+#: With ``keep_factorisation=True``, ContactProblem's direct solver keeps a
+#: factorisation across the Newton iterations of a solve: each Jacobian is solved by flexible
+#: GMRES (right-preconditioned, to 1e-10 of the residual: an exact Newton step) preconditioned
+#: by the last factorisation. A Jacobian is factorised anew at the first iteration of every
+#: solve, after the matrix's pattern was rebuilt, and once GMRES needed more than
+#: REFACTORISE_ITERATIONS iterations. GMRES stops after KEPT_MAX_ITERATIONS, where a kept
+#: factorisation no longer pays (one factorisation costs about 30 GMRES iterations on
+#: benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis and factorisation 0.84 s, one
+#: substitution 27 ms; about 11 on the knee's coarse leg: 0.18 s against 16 ms), and the solve
+#: goes on from the iterate it had reached, whose Jacobian is factorised. When that happened
+#: KEPT_TRIES times in a solve on the first GMRES after a factorisation, the Jacobian changes
+#: too much from one iteration to the next: the solve factorises every Jacobian from then on,
+#: and the problem's next 1, 2, 4, ... solves do not try (until a kept factorisation pays
+#: again). (Once is common: a load step's first Newton step changes the contact set.) Measured:
+#: the press's GMRES took 3 to 11 iterations; the knee's first GMRES on a new factorisation 18
+#: to 61. Giving ``ksp_type`` or ``pc_type`` turns it off.
 REFACTORISE_ITERATIONS = 10
-KEPT_PAYS_ITERATIONS = 20
-KEPT_MAX_ITERATIONS = 30
+KEPT_MAX_ITERATIONS = 20
 KEPT_TRIES = 2
 _KEPT_FACTORISATION_OPTIONS = {
-    "ksp_type": "gmres",
+    # flexible GMRES keeps the preconditioned vectors: no substitution more to form the
+    # solution, which right-preconditioned GMRES spends on every solve (measured on the knee:
+    # a factorised solve 0.19 s with preonly, 0.21 to 0.23 s with GMRES)
+    "ksp_type": "fgmres",
     "ksp_pc_side": "right",
     "ksp_norm_type": "unpreconditioned",
     "ksp_rtol": 1e-10,
@@ -524,7 +525,7 @@ class ContactProblem(_Releasable):
             pattern rebuild, and once GMRES needed more than REFACTORISE_ITERATIONS
             iterations; a GMRES failure goes on from the iterate reached with a new
             factorisation. Where keeping does not pay (the first GMRES on a new
-            factorisation needs more than KEPT_PAYS_ITERATIONS, twice in a solve), the solve
+            factorisation does not converge in KEPT_MAX_ITERATIONS, twice in a solve), the solve
             factorises every Jacobian and the problem's next solves do not try (see
             _KEPT_FACTORISATION_OPTIONS). ``False``: a factorisation per iteration.
 
@@ -618,6 +619,7 @@ class ContactProblem(_Releasable):
         self._keep_skip = self._keep_backoff = 0
         # the solve goes on from the iterate reached (a kept factorisation's GMRES failed)
         self._resuming = False
+        self._resumed_unchanged = False  # its residual and Jacobian are those of the failure
         self._iteration_offset = 0
         #: Newton steps of the last solve taken with the shifted Jacobian (_shifted_direction)
         self.shifted_steps = 0
@@ -647,6 +649,10 @@ class ContactProblem(_Releasable):
         self.assembler.set_state(x)
 
     def _residual(self, snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        if self._resumed_unchanged:
+            # the solve goes on from the iterate where GMRES failed: b (the SNES's residual
+            # vector), the contact state and the matrix still hold its residual and Jacobian
+            return
         self._set_state(x)
         if self._trial_valid and x.equal(self._x_trial):
             # SNES asks for the residual at the step the line search just accepted, which the
@@ -663,7 +669,9 @@ class ContactProblem(_Releasable):
 
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
-        self.assembler.jacobian(A)
+        if not self._resumed_unchanged:
+            self.assembler.jacobian(A)
+        self._resumed_unchanged = False
         if self._choose_factorisation and self._factorise:
             with self._watch("linear_solve"):
                 choose_factorisation(self.snes.getKSP().getPC(), A)
@@ -823,12 +831,13 @@ class ContactProblem(_Releasable):
             snes.setJacobian(self._jacobian, A, A)
 
         rebuilt = self.assembler.rebuild_matrix_if_needed(register)
+        self._resumed_unchanged = self._resumed_unchanged and not rebuilt
         if self._keep_factorisation:
             # factorise at a solve's start, on a new pattern, and once the kept factorisation
             # no longer pays (GMRES iterations are counted on every rank alike)
             gmres_iterations = self.snes.getKSP().getIterationNumber()
             if iteration > 0 and not self._factorise:
-                self._count_kept(gmres_iterations <= KEPT_PAYS_ITERATIONS)
+                self._count_kept(paid=True)  # GMRES converged (SNES stops where it failed)
             self._factorise = (
                 iteration == 0
                 or rebuilt
@@ -843,10 +852,9 @@ class ContactProblem(_Releasable):
                 self._kept_since_factorisation += 1
 
     def _count_kept(self, paid: bool) -> None:
-        """Count a Newton step solved on a kept factorisation: ``paid`` if GMRES took at most
-        KEPT_PAYS_ITERATIONS. Once the first GMRES on a new factorisation did not pay
-        KEPT_TRIES times, the Jacobian changes too much from one iteration to the next: the
-        rest of the solve factorises every Jacobian."""
+        """Count a Newton step solved on a kept factorisation: ``paid`` if GMRES converged
+        (within KEPT_MAX_ITERATIONS). Once the first GMRES on a new factorisation did not
+        converge KEPT_TRIES times, the rest of the solve factorises every Jacobian."""
         if paid:
             self._kept_paid += 1
             return
@@ -902,8 +910,8 @@ class ContactProblem(_Releasable):
                 if failed and self._keep_factorisation and not self._factorise:
                     # GMRES did not converge on a kept factorisation: on from the iterate
                     # reached (SNES leaves it in _x), whose Jacobian is factorised
-                    self._count_kept(False)
-                    self._resuming = True
+                    self._count_kept(paid=False)
+                    self._resuming = self._resumed_unchanged = True
                     continue
                 if not (failed and self._choose_factorisation and pc.getType() == "cholesky"):
                     break
@@ -915,7 +923,7 @@ class ContactProblem(_Releasable):
                 pc.setFactorSolverType("mumps")
         finally:
             start.destroy()
-            self._resuming = False
+            self._resuming = self._resumed_unchanged = False
         if self._kept_unpaid and not self._kept_paid:
             self._keep_backoff = max(1, 2 * self._keep_backoff)
             self._keep_skip = self._keep_backoff
