@@ -296,8 +296,10 @@ class Run:
     def _monitor(self, snes, iteration: int, residual_norm: float) -> None:
         x = snes.getSolution().array_r.copy()
         if iteration == 0:
-            # a solve repeated from its start (see ContactProblem.solve) counts once
-            self.step_lengths.clear()
+            # a solve repeated from its start (see ContactProblem.solve) counts once; one that
+            # goes on from the iterate it reached (a kept factorisation failed) goes on
+            if not (self.step_lengths and np.array_equal(x, self._previous)):
+                self.step_lengths.clear()
         else:
             newton_step = global_norm(snes.getSolutionUpdate().array_r)
             taken = global_norm(x - self._previous)

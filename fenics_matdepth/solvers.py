@@ -59,7 +59,7 @@ _DEFAULT_OPTIONS = {
     "pc_factor_mat_solver_type": "mumps",
 }
 
-#: With ``keep_factorisation=True``, ContactProblem's direct solver keeps a
+#: With ``keep_factorisation=True`` (the default), ContactProblem's direct solver keeps a
 #: factorisation across the Newton iterations of a solve: each Jacobian is solved by flexible
 #: GMRES (right-preconditioned, to 1e-10 of the residual: an exact Newton step) preconditioned
 #: by the last factorisation. A Jacobian is factorised anew at the first iteration of every
@@ -547,7 +547,7 @@ class ContactProblem(_Releasable):
         energy: ufl.Form | None = None,
         petsc_options_prefix: str = "matdepth_",
         petsc_options: dict | None = None,
-        keep_factorisation: bool = False,
+        keep_factorisation: bool = True,
     ):
         _check_problem_inputs(u, contact, bcs)
         self.u = u
