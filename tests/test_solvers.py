@@ -170,14 +170,16 @@ def test_symmetric_jacobians_are_factorised_as_ldlt():
         assert result.converged
         _assert_quadratic(result.residual_norms)
         pc = problem.snes.getKSP().getPC()
-        runs[name] = (pc.getType(), result.iterations, u.x.petsc_vec.copy())
+        # u itself: a PETSc copy of u.x.petsc_vec needs u's space alive (docs/solvers.md)
+        runs[name] = (pc.getType(), result.iterations, u)
         symmetric = problem._A.isSymmetric(1e-10 * problem._A.norm(PETSc.NormType.INFINITY))
         assert symmetric == (name != "convected")
     assert [runs[name][0] for name in runs] == ["cholesky", "lu", "lu"]
     assert runs["default"][1] == runs["lu"][1]
-    diff = runs["default"][2].copy()
-    diff.axpy(-1.0, runs["lu"][2])
-    assert diff.norm() <= 1e-9 * runs["lu"][2].norm()
+    diff = runs["default"][2].x.petsc_vec.copy()
+    diff.axpy(-1.0, runs["lu"][2].x.petsc_vec)
+    assert diff.norm() <= 1e-9 * runs["lu"][2].x.petsc_vec.norm()
+    diff.destroy()
 
 
 def test_failed_ldlt_factorisation_is_retried_with_lu():
@@ -459,10 +461,11 @@ def test_amg_default_above_the_size_threshold(monkeypatch):
             assert image.norm() <= 1e-10 * bulk.norm()
         result = problem.solve()
         assert result.converged
-        solutions[name] = u.x.petsc_vec.copy()
-    diff = solutions["amg"].copy()
-    diff.axpy(-1.0, solutions["lu"])
-    assert diff.norm() <= 1e-7 * solutions["lu"].norm()
+        solutions[name] = u  # not a PETSc copy of u.x.petsc_vec (docs/solvers.md)
+    diff = solutions["amg"].x.petsc_vec.copy()
+    diff.axpy(-1.0, solutions["lu"].x.petsc_vec)
+    assert diff.norm() <= 1e-7 * solutions["lu"].x.petsc_vec.norm()
+    diff.destroy()
     mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
     problem = ContactProblem(residual, u, contact, petsc_options={"pc_type": "jacobi"})
