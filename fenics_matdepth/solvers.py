@@ -81,7 +81,7 @@ KEPT_TRIES = 2
 _KEPT_FACTORISATION_OPTIONS = {
     # flexible GMRES keeps the preconditioned vectors: no substitution more to form the
     # solution, which right-preconditioned GMRES spends on every solve (measured on the knee:
-    # a factorised solve 0.19 s with preonly, 0.21 to 0.23 s with GMRES)
+    # a factorised solve 0.18 to 0.19 s with preonly, 0.21 to 0.23 s with GMRES)
     "ksp_type": "fgmres",
     "ksp_pc_side": "right",
     "ksp_norm_type": "unpreconditioned",
@@ -613,8 +613,9 @@ class ContactProblem(_Releasable):
         self._factorise = True  # whether the coming Jacobian is factorised
         self._factorisations = self._kept_since_factorisation = 0
         self._may_keep = True  # whether this solve may keep a factorisation
-        # kept factorisations of this solve whose GMRES paid or did not (REFACTORISE_ITERATIONS)
-        self._kept_paid = self._kept_unpaid = self._failed_tries = 0
+        # this solve's GMRES solves on a kept factorisation that converged and that failed, and
+        # its failures on the first GMRES after a factorisation (KEPT_TRIES)
+        self._kept_converged = self._kept_failed = self._failed_tries = 0
         # solves left, and solves to leave next time, that factorise every Jacobian
         self._keep_skip = self._keep_backoff = 0
         # the solve goes on from the iterate reached (a kept factorisation's GMRES failed)
@@ -837,7 +838,7 @@ class ContactProblem(_Releasable):
             # no longer pays (GMRES iterations are counted on every rank alike)
             gmres_iterations = self.snes.getKSP().getIterationNumber()
             if iteration > 0 and not self._factorise:
-                self._count_kept(paid=True)  # GMRES converged (SNES stops where it failed)
+                self._kept_converged += 1  # (SNES stops where GMRES failed: solve())
             self._factorise = (
                 iteration == 0
                 or rebuilt
@@ -851,14 +852,11 @@ class ContactProblem(_Releasable):
             else:
                 self._kept_since_factorisation += 1
 
-    def _count_kept(self, paid: bool) -> None:
-        """Count a Newton step solved on a kept factorisation: ``paid`` if GMRES converged
-        (within KEPT_MAX_ITERATIONS). Once the first GMRES on a new factorisation did not
-        converge KEPT_TRIES times, the rest of the solve factorises every Jacobian."""
-        if paid:
-            self._kept_paid += 1
-            return
-        self._kept_unpaid += 1
+    def _count_kept_failure(self) -> None:
+        """Count a GMRES failure on a kept factorisation. Once the first GMRES on a new
+        factorisation failed KEPT_TRIES times, the rest of the solve factorises every
+        Jacobian."""
+        self._kept_failed += 1
         if self._kept_since_factorisation == 1:
             self._failed_tries += 1
             self._may_keep = self._failed_tries < KEPT_TRIES
@@ -885,7 +883,7 @@ class ContactProblem(_Releasable):
         # a solve keeps factorisations unless the last ones that tried found it did not pay
         self._may_keep = self._keep_skip == 0
         self._keep_skip = max(self._keep_skip - 1, 0)
-        self._kept_paid = self._kept_unpaid = self._failed_tries = 0
+        self._kept_converged = self._kept_failed = self._failed_tries = 0
         history = []
         try:
             while True:
@@ -910,7 +908,7 @@ class ContactProblem(_Releasable):
                 if failed and self._keep_factorisation and not self._factorise:
                     # GMRES did not converge on a kept factorisation: on from the iterate
                     # reached (SNES leaves it in _x), whose Jacobian is factorised
-                    self._count_kept(paid=False)
+                    self._count_kept_failure()
                     self._resuming = self._resumed_unchanged = True
                     continue
                 if not (failed and self._choose_factorisation and pc.getType() == "cholesky"):
@@ -924,10 +922,10 @@ class ContactProblem(_Releasable):
         finally:
             start.destroy()
             self._resuming = self._resumed_unchanged = False
-        if self._kept_unpaid and not self._kept_paid:
+        if self._kept_failed and not self._kept_converged:
             self._keep_backoff = max(1, 2 * self._keep_backoff)
             self._keep_skip = self._keep_backoff
-        elif self._kept_paid:
+        elif self._kept_converged:
             self._keep_backoff = 0
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)

@@ -62,6 +62,17 @@ def _press_bcs(mesh, V, top_z: float, push: float):
     return bcs, g
 
 
+def _relative_difference(u, reference) -> float:
+    """|u - reference| / |reference| of two Functions on one space (collective). Tests keep
+    the Functions, not PETSc copies of ``u.x.petsc_vec``, which need ``u``'s space alive
+    (docs/solvers.md)."""
+    difference = u.x.petsc_vec.copy()
+    difference.axpy(-1.0, reference.x.petsc_vec)
+    value = difference.norm() / reference.x.petsc_vec.norm()
+    difference.destroy()
+    return value
+
+
 def _assert_quadratic(r: np.ndarray) -> None:
     assert r[-1] <= 1e-10 * r[0], f"not converged to 1e-10: {r}"
     # pairs in the asymptotic range whose result is above round-off (1e-12 of the start)
@@ -89,11 +100,11 @@ def test_block_pressed_on_block_converges_quadratically():
 def test_a_kept_factorisation():
     """With ``keep_factorisation=True`` the direct solver factorises fewer Jacobians than it
     takes Newton iterations (GMRES preconditioned by the kept factorisation), converges as fast
-    and to the solution of the default (a factorisation per iteration). Where GMRES cannot
-    converge on a kept factorisation (here: one GMRES iteration allowed), the solve goes on
-    from the iterate reached, factorising every Jacobian, and converges as fast; the problem's
-    next solve then does not try to keep a factorisation (one linear solve per iteration), the
-    one after tries again."""
+    and to the solution of a factorisation per iteration (``keep_factorisation=False``). Where
+    GMRES cannot converge on a kept factorisation (here: one GMRES iteration allowed), the
+    solve goes on from the iterate reached, factorising every Jacobian, and converges as fast;
+    the problem's next solve then does not try to keep a factorisation (one linear solve per
+    iteration), the one after tries again."""
     comm = MPI.COMM_WORLD
     runs, mesh = {}, None
     for name, options, keep in (
@@ -123,7 +134,6 @@ def test_a_kept_factorisation():
                 _assert_quadratic(result.residual_norms)
                 assert len(result.residual_norms) == result.iterations + 1
                 results.append((result.iterations, result.factorisations, len(linear_solves)))
-        # u, not a PETSc copy of u.x.petsc_vec, which needs u's space (docs/solvers.md)
         runs[name] = (results, u)
     kept, every = runs["kept"][0], runs["every"][0]
     for (iterations, factorisations, _), (every_iterations, none, _) in zip(
@@ -131,11 +141,7 @@ def test_a_kept_factorisation():
     ):
         assert 1 <= factorisations < iterations
         assert abs(every_iterations - iterations) <= 1 and none == 0
-    kept_x, every_x = runs["kept"][1].x.petsc_vec, runs["every"][1].x.petsc_vec
-    difference = kept_x.copy()
-    difference.axpy(-1.0, every_x)
-    assert difference.norm() <= 1e-8 * kept_x.norm()
-    difference.destroy()
+    assert _relative_difference(runs["every"][1], runs["kept"][1]) <= 1e-8
     failing = runs["one_gmres_iteration"][0]
     for (iterations, factorisations, _), (every_iterations, _, _) in zip(
         failing, every, strict=True
@@ -170,16 +176,12 @@ def test_symmetric_jacobians_are_factorised_as_ldlt():
         assert result.converged
         _assert_quadratic(result.residual_norms)
         pc = problem.snes.getKSP().getPC()
-        # u itself: a PETSc copy of u.x.petsc_vec needs u's space alive (docs/solvers.md)
         runs[name] = (pc.getType(), result.iterations, u)
         symmetric = problem._A.isSymmetric(1e-10 * problem._A.norm(PETSc.NormType.INFINITY))
         assert symmetric == (name != "convected")
     assert [runs[name][0] for name in runs] == ["cholesky", "lu", "lu"]
     assert runs["default"][1] == runs["lu"][1]
-    diff = runs["default"][2].x.petsc_vec.copy()
-    diff.axpy(-1.0, runs["lu"][2].x.petsc_vec)
-    assert diff.norm() <= 1e-9 * runs["lu"][2].x.petsc_vec.norm()
-    diff.destroy()
+    assert _relative_difference(runs["default"][2], runs["lu"][2]) <= 1e-9
 
 
 def test_failed_ldlt_factorisation_is_retried_with_lu():
@@ -461,11 +463,8 @@ def test_amg_default_above_the_size_threshold(monkeypatch):
             assert image.norm() <= 1e-10 * bulk.norm()
         result = problem.solve()
         assert result.converged
-        solutions[name] = u  # not a PETSc copy of u.x.petsc_vec (docs/solvers.md)
-    diff = solutions["amg"].x.petsc_vec.copy()
-    diff.axpy(-1.0, solutions["lu"].x.petsc_vec)
-    assert diff.norm() <= 1e-7 * solutions["lu"].x.petsc_vec.norm()
-    diff.destroy()
+        solutions[name] = u
+    assert _relative_difference(solutions["amg"], solutions["lu"]) <= 1e-7
     mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
     problem = ContactProblem(residual, u, contact, petsc_options={"pc_type": "jacobi"})
