@@ -160,7 +160,10 @@ def main():
         iterations += result.iterations
         if comm.rank == 0:
             history = " ".join(f"{r:.1e}" for r in result.residual_norms)
-            print(f"load {t}: {result.iterations} iterations, residual norms {history}")
+            print(
+                f"load {t}: {result.iterations} iterations, {result.factorisations} "
+                f"factorisations, residual norms {history}"
+            )
         for key, value in problem.timings.items():
             totals[key] += comm.allreduce(value, op=MPI.MAX)
     wall = comm.allreduce(wall, op=MPI.MAX)
