@@ -62,9 +62,11 @@ _DEFAULT_OPTIONS = {
 #: With ``keep_factorisation=True`` (the default), ContactProblem's direct solver keeps a
 #: factorisation across the Newton iterations of a solve: each Jacobian is solved by flexible
 #: GMRES (right-preconditioned, to 1e-10 of the residual: an exact Newton step) preconditioned
-#: by the last factorisation. A Jacobian is factorised anew at the first iteration of every
-#: solve, after the matrix's pattern was rebuilt, and once GMRES needed more than
-#: REFACTORISE_ITERATIONS iterations. GMRES stops after KEPT_MAX_ITERATIONS, where a kept
+#: by the last factorisation. A Jacobian is factorised anew after the matrix's pattern was
+#: rebuilt and once GMRES needed more than REFACTORISE_ITERATIONS iterations; a solve starts on
+#: the last solve's factorisation if that solve converged (a load step, a time step or a
+#: pressure update later the Jacobian changed little) and the contact penalty is the same,
+#: otherwise it factorises its first Jacobian. GMRES stops after KEPT_MAX_ITERATIONS, where a kept
 #: factorisation no longer pays (one factorisation costs about 30 GMRES iterations on
 #: benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis and factorisation 0.84 s, one
 #: substitution 27 ms; about 11 on the knee's coarse leg: 0.18 s against 16 ms), and the solve
@@ -72,7 +74,9 @@ _DEFAULT_OPTIONS = {
 #: KEPT_TRIES times in a solve on the first GMRES after a factorisation, the Jacobian changes
 #: too much from one iteration to the next: the solve factorises every Jacobian from then on,
 #: and the problem's next 1, 2, 4, ... solves do not try (until a kept factorisation pays
-#: again). (Once is common: a load step's first Newton step changes the contact set.) Measured:
+#: again). (Once is common: a load step's first Newton step changes the contact set.) When
+#: GMRES fails on the factorisation a solve started on, the next 1, 2, 4, ... solves factorise
+#: their first Jacobian. Measured:
 #: the press's GMRES took 3 to 11 iterations; the knee's first GMRES on a new factorisation 18
 #: to 61. Giving ``ksp_type`` or ``pc_type`` turns it off.
 REFACTORISE_ITERATIONS = 10
@@ -519,15 +523,16 @@ class ContactProblem(_Releasable):
             AMG_MIN_DOFS global dofs on, unless ``ksp_type`` or ``pc_type`` is given, the
             linear solver is GMRES with GAMG instead; with ``pc_type: gamg`` the rigid-body modes
             (:func:`~fenics_matdepth.rigid_body_modes`) are set as the matrix's near-nullspace.
-        keep_factorisation: with the default direct solver, keep a factorisation across a
-            solve's Newton iterations as the preconditioner of GMRES (exact Newton steps: to
-            1e-10 of the residual), factorising anew at a solve's first iteration, after a
-            pattern rebuild, and once GMRES needed more than REFACTORISE_ITERATIONS
-            iterations; a GMRES failure goes on from the iterate reached with a new
-            factorisation. Where keeping does not pay (the first GMRES on a new
-            factorisation does not converge in KEPT_MAX_ITERATIONS, twice in a solve), the solve
-            factorises every Jacobian and the problem's next solves do not try (see
-            _KEPT_FACTORISATION_OPTIONS). ``False``: a factorisation per iteration.
+        keep_factorisation: with the default direct solver, keep a factorisation across
+            Newton iterations as the preconditioner of GMRES (exact Newton steps: to 1e-10 of
+            the residual), factorising anew after a pattern rebuild and once GMRES needed more
+            than REFACTORISE_ITERATIONS iterations; a solve starts on the factorisation the
+            last one ended with when that one converged at the same contact penalty. A GMRES
+            failure goes on from the iterate reached with a new factorisation. Where keeping
+            does not pay (the first GMRES on a new factorisation does not converge in
+            KEPT_MAX_ITERATIONS, twice in a solve), the solve factorises every Jacobian and
+            the problem's next solves do not try (see _KEPT_FACTORISATION_OPTIONS).
+            ``False``: a factorisation per iteration.
 
     Attributes:
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
@@ -618,6 +623,12 @@ class ContactProblem(_Releasable):
         self._kept_converged = self._kept_failed = self._failed_tries = 0
         # solves left, and solves to leave next time, that factorise every Jacobian
         self._keep_skip = self._keep_backoff = 0
+        # the preconditioner holds a factorisation of the current matrix that the next solve
+        # may start on (the last solve converged on it), whether this solve started on it,
+        # and solves left, and to leave next time, that factorise their first Jacobian
+        self._carried_valid = self._carried = False
+        self._carried_penalty = None  # the contact penalty it was factorised with
+        self._carry_skip = self._carry_backoff = 0
         # the solve goes on from the iterate reached (a kept factorisation's GMRES failed)
         self._resuming = False
         self._resumed_unchanged = False  # its residual and Jacobian are those of the failure
@@ -840,7 +851,7 @@ class ContactProblem(_Releasable):
             if iteration > 0 and not self._factorise:
                 self._kept_converged += 1  # (SNES stops where GMRES failed: solve())
             self._factorise = (
-                iteration == 0
+                (iteration == 0 and (self._resuming or not self._carried))
                 or rebuilt
                 or not self._may_keep
                 or gmres_iterations > REFACTORISE_ITERATIONS
@@ -884,6 +895,13 @@ class ContactProblem(_Releasable):
         self._may_keep = self._keep_skip == 0
         self._keep_skip = max(self._keep_skip - 1, 0)
         self._kept_converged = self._kept_failed = self._failed_tries = 0
+        # the first Newton step on the last solve's factorisation (its load changed little)
+        self._carried = (
+            self._keep_factorisation and self._carried_valid and self._may_keep
+            and self._carry_skip == 0 and self.contact.penalty == self._carried_penalty
+        )  # fmt: skip
+        self._carry_skip = max(self._carry_skip - 1, 0)
+        self._carried_valid = carried_failed = False
         history = []
         try:
             while True:
@@ -908,6 +926,10 @@ class ContactProblem(_Releasable):
                 if failed and self._keep_factorisation and not self._factorise:
                     # GMRES did not converge on a kept factorisation: on from the iterate
                     # reached (SNES leaves it in _x), whose Jacobian is factorised
+                    if self._carried and self._iteration_offset == 0:
+                        # on the last solve's factorisation: later solves factorise their
+                        # first Jacobian for a while (1, 2, 4, ... solves)
+                        carried_failed = True
                     self._count_kept_failure()
                     self._resuming = self._resumed_unchanged = True
                     continue
@@ -916,7 +938,7 @@ class ContactProblem(_Releasable):
                 # MUMPS could not complete the LDL^T factorisation (seen: its workspace
                 # estimate too small, INFOG(1) = -9, for a Jacobian near singular): LU from now
                 # on, and the solve again from its start
-                self._choose_factorisation = False
+                self._choose_factorisation = self._carried = False
                 pc.setType("lu")
                 pc.setFactorSolverType("mumps")
         finally:
@@ -927,9 +949,15 @@ class ContactProblem(_Releasable):
             self._keep_skip = self._keep_backoff
         elif self._kept_converged:
             self._keep_backoff = 0
+        if carried_failed:
+            self._carry_backoff = max(1, 2 * self._carry_backoff)
+            self._carry_skip = self._carry_backoff
+        elif self._carried:
+            self._carry_backoff = 0
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
         reason = int(self.snes.getConvergedReason())
+        self._carried_valid, self._carried_penalty = reason > 0, self.contact.penalty
         result = SolveResult(
             reason > 0, reason, self._iteration_offset, np.asarray(history, dtype=float),
             self.assembler.rejected_states, self.min_det_F(), self.shifted_steps,

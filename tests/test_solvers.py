@@ -97,14 +97,32 @@ def test_block_pressed_on_block_converges_quadratically():
     assert all(problem.timings[k] > 0.0 for k in problem.timings), problem.timings
 
 
+def _record_factorisations(problem, record: list) -> None:
+    """A KSP monitor appending, at each linear solve's start, whether its preconditioner was
+    factorised anew for it (the PETSc state of MUMPS's factor matrix changed): counted apart
+    from the problem's own counters."""
+    pc = problem.snes.getKSP().getPC()
+    last = [None]
+
+    def monitor(ksp, its, rnorm):
+        if its == 0:
+            state = pc.getFactorMatrix().stateGet()
+            record.append(state != last[0])
+            last[0] = state
+
+    problem.snes.getKSP().setMonitor(monitor)
+
+
 def test_a_kept_factorisation():
     """With ``keep_factorisation=True`` the direct solver factorises fewer Jacobians than it
     takes Newton iterations (GMRES preconditioned by the kept factorisation), converges as fast
-    and to the solution of a factorisation per iteration (``keep_factorisation=False``). Where
-    GMRES cannot converge on a kept factorisation (here: one GMRES iteration allowed), the
-    solve goes on from the iterate reached, factorising every Jacobian, and converges as fast;
-    the problem's next solve then does not try to keep a factorisation (one linear solve per
-    iteration), the one after tries again."""
+    and to the solution of a factorisation per iteration (``keep_factorisation=False``). A
+    solve after a converged one starts on that one's last factorisation, unless the contact
+    penalty changed in between. Where GMRES cannot converge on a kept factorisation (here: one
+    GMRES iteration allowed), the solve goes on from the iterate reached, factorising every
+    Jacobian, and converges as fast; the problem's next solve then does not try to keep a
+    factorisation (one linear solve per iteration), the one after tries again, first on the
+    factorisation it was handed."""
     comm = MPI.COMM_WORLD
     runs, mesh = {}, None
     for name, options, keep in (
@@ -120,27 +138,31 @@ def test_a_kept_factorisation():
             residual, u, contact, bcs=bcs, energy=energy, petsc_options=options,
             keep_factorisation=keep,
         ) as problem:  # fmt: skip
-            linear_solves = []
-            problem.snes.getKSP().setMonitor(
-                lambda ksp, its, rnorm, solves=linear_solves: (
-                    solves.append(its) if its == 0 else None
-                )
-            )
-            for depth in (-0.02, -0.03, -0.04):
+            factorised = []
+            _record_factorisations(problem, factorised)
+            # the last solve at the third one's load, with a stiffer penalty
+            for depth, penalty in ((-0.02, 200.0), (-0.03, 200.0), (-0.04, 200.0), (-0.04, 250.0)):
                 push.x.array.reshape(-1, 3)[:, 2] = depth
-                del linear_solves[:]
+                contact.penalty = penalty
+                del factorised[:]
                 result = problem.solve()
                 assert result.converged
-                _assert_quadratic(result.residual_norms)
                 assert len(result.residual_norms) == result.iterations + 1
-                results.append((result.iterations, result.factorisations, len(linear_solves)))
+                if penalty == 200.0:  # (the last starts near its solution, at round-off)
+                    _assert_quadratic(result.residual_norms)
+                # (the problem counts its factorisations only when it may keep one)
+                assert sum(factorised) == (result.factorisations if keep else result.iterations)
+                results.append((result.iterations, result.factorisations, list(factorised)))
         runs[name] = (results, u)
     kept, every = runs["kept"][0], runs["every"][0]
     for (iterations, factorisations, _), (every_iterations, none, _) in zip(
         kept, every, strict=True
     ):
-        assert 1 <= factorisations < iterations
+        assert factorisations < iterations
         assert abs(every_iterations - iterations) <= 1 and none == 0
+    # the first solve and the one after the penalty changed factorise their first Jacobian,
+    # the others start on the factorisation the solve before ended with
+    assert [first for _, _, (first, *_) in kept] == [True, False, False, True]
     assert _relative_difference(runs["every"][1], runs["kept"][1]) <= 1e-8
     failing = runs["one_gmres_iteration"][0]
     for (iterations, factorisations, _), (every_iterations, _, _) in zip(
@@ -148,10 +170,44 @@ def test_a_kept_factorisation():
     ):
         assert factorisations == iterations
         assert abs(every_iterations - iterations) <= 1
-    # the first and third solve tried to keep a factorisation KEPT_TRIES times (as many failed
-    # linear solves more than iterations), the second did not try
+    # the first and third solves tried to keep a factorisation KEPT_TRIES times (as many linear
+    # solves more than iterations), the third first on the second's last factorisation; the
+    # second and fourth did not try (backing off after the first and third)
     tries = solvers.KEPT_TRIES
-    assert [solves - iterations for iterations, _, solves in failing] == [tries, 0, tries]
+    linear_solves = [len(record) - iterations for iterations, _, record in failing]
+    assert linear_solves == [tries, 0, tries, 0]
+    assert [record[0] for _, _, record in failing] == [True, True, False, True]
+
+
+def test_a_carried_factorisation_that_fails_backs_off():
+    """Where GMRES does not converge on the factorisation a solve was handed by the one before
+    (here: the bulk made 20 times stiffer in between), the solve goes on with a factorisation
+    of its first Jacobian and converges, and the problem's next solve factorises its first
+    Jacobian rather than trying again; the one after starts on the factorisation it is
+    handed."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    stiffness = dolfinx.fem.Constant(mesh, 1.0)
+    bcs, push = _press_bcs(mesh, V, 0.9, -0.02)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    records = []
+    with ContactProblem(
+        stiffness * residual, u, contact, bcs=bcs, energy=stiffness * energy
+    ) as problem:
+        factorised = []
+        _record_factorisations(problem, factorised)
+        steps = ((-0.02, 1.0), (-0.03, 1.0), (-0.04, 20.0), (-0.05, 20.0), (-0.06, 20.0))
+        for depth, scale in steps:
+            push.x.array.reshape(-1, 3)[:, 2] = depth
+            stiffness.value = scale
+            del factorised[:]
+            result = problem.solve()
+            assert result.converged
+            _assert_quadratic(result.residual_norms)
+            assert sum(factorised) == result.factorisations
+            records.append(list(factorised))
+    assert [record[0] for record in records] == [True, False, False, True, False]
+    assert records[2][1], "the failed carried start is followed by a factorisation"
 
 
 def test_symmetric_jacobians_are_factorised_as_ldlt():
