@@ -10,11 +10,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fenics_matdepth.geometry.clip import (
+    _BLOCK,
     CLIP_SHIFT,
     CLIP_TOL,
     MAX_POLYGON_VERTICES,
     SHIFT_TANGENT,
     _clip_nonempty,
+    _decide_block,
     _intersect_pairs,
     _near_pairs,
     _snap,
@@ -385,6 +387,79 @@ def test_batch_intersection_test_degenerate_pairs(seed):
             count = _intersect_pairs(coords, tri, tet, pair_tri[order], pair_tet[order], flags)
             np.testing.assert_array_equal(flags, expected[order])
             assert count == expected.sum()
+
+
+def _mixed_pairs(n, seed):
+    """Separate (triangle, tetrahedron) pairs of unit size around one another, as the kernel
+    benchmark draws them: face-separated pairs, corners inside and pairs the clip decides."""
+    rng = np.random.default_rng(seed)
+    x_tet = rng.normal(size=(n, 4, 3))
+    x_tri = x_tet.mean(axis=1, keepdims=True) + 0.3 * rng.normal(size=(n, 1, 3))
+    x_tri = x_tri + 0.6 * rng.normal(size=(n, 3, 3))
+    x = np.concatenate([x_tri, x_tet], axis=1).reshape(-1, 3)
+    tri = 7 * np.arange(n)[:, None] + np.arange(3)
+    tet = 7 * np.arange(n)[:, None] + 3 + np.arange(4)
+    return x, tri, tet
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_decide_block_rows_and_decisions(seed):
+    """`_decide_block` (the vectorised part of `_intersect_pairs`) writes the clipper's snapped
+    rows bit for bit and settles exactly the pairs the clipper's parts settle: empty for a flat
+    tetrahedron, a zero-area triangle or a face plane with every corner strictly outside, a
+    corner strictly inside, the clip for the rest; on degenerate grid pairs (exact zeros, ties,
+    flat tetrahedra) and on a random mix."""
+    grid, tri_g, tet_g, grid_rot = _degenerate_mesh(seed)
+    x_mix, tri_m, tet_m = _mixed_pairs(400, seed)
+    rng = np.random.default_rng(200 + seed)
+    cases = [(coords, tri_g, tet_g) for coords in (grid, grid_rot)] + [(x_mix, tri_m, tet_m)]
+    seen = np.zeros(3, dtype=int)
+    grads = np.empty((4, 3))
+    lam = np.empty((3, 4))
+    for coords, tri, tet in cases:
+        for _ in range(8):
+            pair_tri = rng.integers(0, len(tri), size=_BLOCK)
+            pair_tet = rng.integers(0, len(tet), size=_BLOCK)
+            if tri is tri_m:
+                pair_tet = pair_tri  # the mix's pairs are its triangles and tetrahedra in order
+            w = np.full(34 * _BLOCK, np.nan)
+            block = w.reshape(34, _BLOCK)
+            block[:9] = coords[tri[pair_tri]].reshape(-1, 9).T
+            block[9:21] = coords[tet[pair_tet]].reshape(-1, 12).T
+            m = _BLOCK - int(rng.integers(0, 3))  # a short block leaves its tail alone
+            _decide_block(w, m)
+            assert np.all(np.isnan(block[21:, m:]))
+            for k in range(m):
+                xs = np.ascontiguousarray(coords[tri[pair_tri[k]]])
+                xt = np.ascontiguousarray(coords[tet[pair_tet[k]]])
+                if _tet_gradients(xt, grads) == 0.0 or _triangle_area2(xs) == 0.0:
+                    expected = 0
+                else:
+                    _triangle_rows(xs, xt, grads, lam)
+                    _snap(lam)
+                    np.testing.assert_array_equal(block[21:33, k].reshape(3, 4), lam)
+                    if np.any(np.all(lam < 0.0, axis=0)):
+                        expected = 0
+                    elif np.any(np.all(lam > 0.0, axis=1)):
+                        expected = 1
+                    else:
+                        expected = 2
+                assert block[33, k] == expected
+                seen[expected] += 1
+    assert np.all(seen > 100)
+
+
+@pytest.mark.parametrize("n", [0, 1, _BLOCK - 1, _BLOCK, _BLOCK + 1, 3 * _BLOCK + 5])
+def test_batch_intersection_test_block_sizes(n):
+    """Runs of pairs shorter, as long and longer than a block (a partial last block): the flags
+    of the clipper's parts, pair by pair."""
+    x, tri, tet = _mixed_pairs(max(n, 1), 5)
+    pairs = np.arange(n)
+    flags = np.ones(n, dtype=bool)
+    count = _intersect_pairs(x, tri, tet, pairs, pairs, flags)
+    expected = _reference_flags(x, tri, tet, pairs, pairs)
+    np.testing.assert_array_equal(flags, expected)
+    assert count == expected.sum()
 
 
 def test_clip_tolerance_is_small():

@@ -88,26 +88,20 @@ MAX_POLYGON_VERTICES = 8
 
 
 @njit(cache=True)
-def _tet_gradients(x_tet, grads):
-    """Barycentric gradients of a tetrahedron.
-
-    Args:
-        x_tet: (4, 3) vertex coordinates (length).
-        grads: (4, 3) output, ``grads[j] = grad lambda_j`` (1 / length).
-
-    Returns:
-        6 x signed volume (length^3); 0.0 for a flat tetrahedron (grads then untouched).
-    """
-    e1x = x_tet[1, 0] - x_tet[0, 0]
-    e1y = x_tet[1, 1] - x_tet[0, 1]
-    e1z = x_tet[1, 2] - x_tet[0, 2]
-    e2x = x_tet[2, 0] - x_tet[0, 0]
-    e2y = x_tet[2, 1] - x_tet[0, 1]
-    e2z = x_tet[2, 2] - x_tet[0, 2]
-    e3x = x_tet[3, 0] - x_tet[0, 0]
-    e3y = x_tet[3, 1] - x_tet[0, 1]
-    e3z = x_tet[3, 2] - x_tet[0, 2]
-    # cross products e2 x e3, e3 x e1, e1 x e2 are det * (rows of the inverse edge matrix)
+def _tet_frame(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, p3x, p3y, p3z):
+    """6 x signed volume, squared longest edge and the cross products ``e2 x e3``, ``e3 x e1``,
+    ``e1 x e2`` (``e_k = x_k - x_0``: det times the barycentric gradients 1 to 3) of a
+    tetrahedron given by its vertex coordinates, as a 11-tuple (det, h2, c1x, ..., c3z). Scalars
+    in and out, so that `_intersect_pairs` runs it on many tetrahedra in one vectorised loop."""
+    e1x = p1x - p0x
+    e1y = p1y - p0y
+    e1z = p1z - p0z
+    e2x = p2x - p0x
+    e2y = p2y - p0y
+    e2z = p2z - p0z
+    e3x = p3x - p0x
+    e3y = p3y - p0y
+    e3z = p3z - p0z
     c1x = e2y * e3z - e2z * e3y
     c1y = e2z * e3x - e2x * e3z
     c1z = e2x * e3y - e2y * e3x
@@ -118,13 +112,40 @@ def _tet_gradients(x_tet, grads):
     c3y = e1z * e2x - e1x * e2z
     c3z = e1x * e2y - e1y * e2x
     det = e1x * c1x + e1y * c1y + e1z * c1z
-    h2 = 0.0
-    for a in range(4):
-        for b in range(a + 1, 4):
-            dx = x_tet[a, 0] - x_tet[b, 0]
-            dy = x_tet[a, 1] - x_tet[b, 1]
-            dz = x_tet[a, 2] - x_tet[b, 2]
-            h2 = max(h2, dx * dx + dy * dy + dz * dz)
+    # longest edge, the six edges in the order (0 1) (0 2) (0 3) (1 2) (1 3) (2 3)
+    h2 = max(0.0, e1x * e1x + e1y * e1y + e1z * e1z)
+    h2 = max(h2, e2x * e2x + e2y * e2y + e2z * e2z)
+    h2 = max(h2, e3x * e3x + e3y * e3y + e3z * e3z)
+    dx = p2x - p1x
+    dy = p2y - p1y
+    dz = p2z - p1z
+    h2 = max(h2, dx * dx + dy * dy + dz * dz)
+    dx = p3x - p1x
+    dy = p3y - p1y
+    dz = p3z - p1z
+    h2 = max(h2, dx * dx + dy * dy + dz * dz)
+    dx = p3x - p2x
+    dy = p3y - p2y
+    dz = p3z - p2z
+    h2 = max(h2, dx * dx + dy * dy + dz * dz)
+    return det, h2, c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z
+
+
+@njit(cache=True)
+def _tet_gradients(x_tet, grads):
+    """Barycentric gradients of a tetrahedron.
+
+    Args:
+        x_tet: (4, 3) vertex coordinates (length).
+        grads: (4, 3) output, ``grads[j] = grad lambda_j`` (1 / length).
+
+    Returns:
+        6 x signed volume (length^3); 0.0 for a flat tetrahedron (grads then untouched).
+    """
+    det, h2, c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = _tet_frame(
+        x_tet[0, 0], x_tet[0, 1], x_tet[0, 2], x_tet[1, 0], x_tet[1, 1], x_tet[1, 2],
+        x_tet[2, 0], x_tet[2, 1], x_tet[2, 2], x_tet[3, 0], x_tet[3, 1], x_tet[3, 2],
+    )  # fmt: skip
     if not (abs(det) > TET_VOLUME_RTOL * h2 * np.sqrt(h2)):
         return 0.0
     inv = 1.0 / det
@@ -146,12 +167,21 @@ def _tet_gradients(x_tet, grads):
 def _edges_and_normal(x_tri):
     """Edges ``a = x1 - x0``, ``b = x2 - x0`` and normal ``n = a x b`` of a triangle, as a
     9-tuple (ax, ay, az, bx, by, bz, nx, ny, nz)."""
-    ax = x_tri[1, 0] - x_tri[0, 0]
-    ay = x_tri[1, 1] - x_tri[0, 1]
-    az = x_tri[1, 2] - x_tri[0, 2]
-    bx = x_tri[2, 0] - x_tri[0, 0]
-    by = x_tri[2, 1] - x_tri[0, 1]
-    bz = x_tri[2, 2] - x_tri[0, 2]
+    return _edges_normal_of(
+        x_tri[0, 0], x_tri[0, 1], x_tri[0, 2], x_tri[1, 0], x_tri[1, 1], x_tri[1, 2],
+        x_tri[2, 0], x_tri[2, 1], x_tri[2, 2],
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2):
+    """`_edges_and_normal` from the corners' coordinates (scalars)."""
+    ax = x1 - x0
+    ay = y1 - y0
+    az = z1 - z0
+    bx = x2 - x0
+    by = y2 - y0
+    bz = z2 - z0
     return ax, ay, az, bx, by, bz, ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
@@ -162,6 +192,14 @@ def _clip_shift(x_tri):
     ``n = (x1 - x0) x (x2 - x0)``, ``t_1`` the unit vector along ``x1 - x0`` and ``t_2 = n x
     t_1 / |n|``."""
     ax, ay, az, _, _, _, nx, ny, nz = _edges_and_normal(x_tri)
+    return _shift_of(ax, ay, az, nx, ny, nz)
+
+
+@njit(cache=True, error_model="numpy")
+def _shift_of(ax, ay, az, nx, ny, nz):
+    """`_clip_shift` from the triangle's first edge ``a`` and normal ``n`` (scalars, so that
+    `_intersect_pairs` runs it on many triangles in one vectorised loop; the divisions are
+    guarded, hence the numpy error model, which lets them vectorise)."""
     a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     la = np.sqrt(ax * ax + ay * ay + az * az)
     if not (a2 > 0.0 and la > 0.0):
@@ -359,10 +397,16 @@ def _polygon_area_ratio(mu, n):
 def _triangle_area2(x_tri):
     """Twice the triangle area (length^2), 0.0 below TRI_AREA_RTOL."""
     ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(x_tri)
-    a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     cx = x_tri[2, 0] - x_tri[1, 0]
     cy = x_tri[2, 1] - x_tri[1, 1]
     cz = x_tri[2, 2] - x_tri[1, 2]
+    return _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz)
+
+
+@njit(cache=True)
+def _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz):
+    """`_triangle_area2` from the edges ``a``, ``b``, ``c = x2 - x1`` and normal (scalars)."""
+    a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     h2 = max(ax * ax + ay * ay + az * az, bx * bx + by * by + bz * bz, cx * cx + cy * cy + cz * cz)
     if not (a2 > TRI_AREA_RTOL * h2):
         return 0.0
@@ -382,14 +426,134 @@ def _intersection_polygon(x_tri, x_tet, mu, vlab, elab):
     return _clip(lam, mu, vlab, elab)
 
 
+#: Pairs per block of `_intersect_pairs`: gathered into a work array, then tested in one loop
+#: that the compiler vectorises (4 pairs an instruction with AVX2).
+_BLOCK = 64
+#: Row offsets of that work array (row r of pair k at ``r * _BLOCK + k``): rows 0-8 the
+#: triangle's corners, 9-20 the tetrahedron's, 21-32 the snapped rows ``lam[i, j]`` at
+#: ``21 + 4 i + j``, 33 the decision. Unsigned, so that the compiler sees non-negative indices
+#: (numba adds a wrap-around select to signed ones, which keeps the loop from vectorising).
+_ROW = tuple(np.uint64(r * _BLOCK) for r in range(34))
+
+
+@njit(cache=True, error_model="numpy")
+def _decide_block(w, m):
+    """The intersection test of `_intersect_pairs` on the first m pairs of a work block ``w``,
+    up to the clip: 0 (empty: zero-area triangle, flat tetrahedron or a separating face plane),
+    1 (a corner strictly inside) or 2 (the clip decides, on the snapped rows also written).
+
+    The operations of `_triangle_area2`, `_clip_shift`, `_tet_gradients`, `_shifted_rows` and
+    `_snap`, in the same order (hence the same values), on scalars and with selects instead of
+    branches, so that the loop vectorises; the tests become sign tests of a min-max: a face
+    plane separates where ``min_j max_i lam[i, j] < 0``, a corner is inside where
+    ``max_i min_j lam[i, j] > 0``. A zero-area triangle or a flat tetrahedron gives infinite or
+    NaN values here (the numpy error model: no exceptions), which are discarded.
+    """
+    for k in range(m):
+        q = np.uint64(k)
+        x0 = w[_ROW[0] + q]
+        y0 = w[_ROW[1] + q]
+        z0 = w[_ROW[2] + q]
+        x1 = w[_ROW[3] + q]
+        y1 = w[_ROW[4] + q]
+        z1 = w[_ROW[5] + q]
+        x2 = w[_ROW[6] + q]
+        y2 = w[_ROW[7] + q]
+        z2 = w[_ROW[8] + q]
+        ax, ay, az, bx, by, bz, nx, ny, nz = _edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2)
+        area2 = _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, x2 - x1, y2 - y1, z2 - z1)
+        sx, sy, sz = _shift_of(ax, ay, az, nx, ny, nz)
+        p0x = w[_ROW[9] + q]
+        p0y = w[_ROW[10] + q]
+        p0z = w[_ROW[11] + q]
+        det, h2, g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z = _tet_frame(
+            p0x, p0y, p0z, w[_ROW[12] + q], w[_ROW[13] + q], w[_ROW[14] + q],
+            w[_ROW[15] + q], w[_ROW[16] + q], w[_ROW[17] + q],
+            w[_ROW[18] + q], w[_ROW[19] + q], w[_ROW[20] + q],
+        )  # fmt: skip
+        valid = (area2 != 0.0) & (abs(det) > TET_VOLUME_RTOL * h2 * np.sqrt(h2))
+        inv = 1.0 / det
+        g1x *= inv
+        g1y *= inv
+        g1z *= inv
+        g2x *= inv
+        g2y *= inv
+        g2z *= inv
+        g3x *= inv
+        g3y *= inv
+        g3z *= inv
+        # corner 0: `_shifted_rows`, then `_snap`
+        dx = (x0 - p0x) + sx
+        dy = (y0 - p0y) + sy
+        dz = (z0 - p0z) + sz
+        v1 = g1x * dx + g1y * dy + g1z * dz
+        v2 = g2x * dx + g2y * dy + g2z * dz
+        v3 = g3x * dx + g3y * dy + g3z * dz
+        v0 = 1.0 - (((0.0 + v1) + v2) + v3)
+        tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
+        l00 = 0.0 if abs(v0) <= tol else v0
+        l01 = 0.0 if abs(v1) <= tol else v1
+        l02 = 0.0 if abs(v2) <= tol else v2
+        l03 = 0.0 if abs(v3) <= tol else v3
+        w[_ROW[21] + q] = l00
+        w[_ROW[22] + q] = l01
+        w[_ROW[23] + q] = l02
+        w[_ROW[24] + q] = l03
+        # corner 1: `_shifted_rows`, then `_snap`
+        dx = (x1 - p0x) + sx
+        dy = (y1 - p0y) + sy
+        dz = (z1 - p0z) + sz
+        v1 = g1x * dx + g1y * dy + g1z * dz
+        v2 = g2x * dx + g2y * dy + g2z * dz
+        v3 = g3x * dx + g3y * dy + g3z * dz
+        v0 = 1.0 - (((0.0 + v1) + v2) + v3)
+        tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
+        l10 = 0.0 if abs(v0) <= tol else v0
+        l11 = 0.0 if abs(v1) <= tol else v1
+        l12 = 0.0 if abs(v2) <= tol else v2
+        l13 = 0.0 if abs(v3) <= tol else v3
+        w[_ROW[25] + q] = l10
+        w[_ROW[26] + q] = l11
+        w[_ROW[27] + q] = l12
+        w[_ROW[28] + q] = l13
+        # corner 2: `_shifted_rows`, then `_snap`
+        dx = (x2 - p0x) + sx
+        dy = (y2 - p0y) + sy
+        dz = (z2 - p0z) + sz
+        v1 = g1x * dx + g1y * dy + g1z * dz
+        v2 = g2x * dx + g2y * dy + g2z * dz
+        v3 = g3x * dx + g3y * dy + g3z * dz
+        v0 = 1.0 - (((0.0 + v1) + v2) + v3)
+        tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
+        l20 = 0.0 if abs(v0) <= tol else v0
+        l21 = 0.0 if abs(v1) <= tol else v1
+        l22 = 0.0 if abs(v2) <= tol else v2
+        l23 = 0.0 if abs(v3) <= tol else v3
+        w[_ROW[29] + q] = l20
+        w[_ROW[30] + q] = l21
+        w[_ROW[31] + q] = l22
+        w[_ROW[32] + q] = l23
+        separating = min(
+            min(max(max(l00, l10), l20), max(max(l01, l11), l21)),
+            min(max(max(l02, l12), l22), max(max(l03, l13), l23)),
+        )
+        inside = max(
+            max(min(min(l00, l01), min(l02, l03)), min(min(l10, l11), min(l12, l13))),
+            min(min(l20, l21), min(l22, l23)),
+        )
+        decided = 1.0 if inside > 0.0 else 2.0
+        w[_ROW[33] + q] = decided if (valid & (separating >= 0.0)) else 0.0
+
+
 @njit(cache=True)
 def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     """Intersection test for many pairs: ``out[p] = True`` where the polygon is non-empty.
 
-    The decisions of `_tet_gradients`, `_triangle_rows`, `_snap`, `_clip_nonempty` and
-    `_triangle_area2`; a triangle's clip shift and area are computed once per run of pairs with
-    the same triangle (a broad phase delivers candidates grouped by triangle), and a zero-area
-    triangle's pairs are dropped before their tetrahedra are read.
+    The decisions of `_triangle_area2`, `_tet_gradients`, `_triangle_rows`, `_snap`, the
+    separating face plane and the corner inside (as `_clip`) and `_clip_nonempty`. The pairs
+    go in blocks of _BLOCK: their 7 vertices are gathered into a work array, `_decide_block`
+    computes every pair's snapped rows and settles the pairs that need no clip in one
+    vectorised loop, and `_clip_nonempty` decides the rest, one by one.
 
     Args:
         x: (nv, 3) current vertex coordinates.
@@ -401,48 +565,35 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     Returns:
         Number of intersecting pairs.
     """
-    grads = np.empty((4, 3), dtype=FLOAT)
+    w = np.empty(34 * _BLOCK, dtype=FLOAT)
     lam = np.empty((3, 4), dtype=FLOAT)
-    xt = np.empty((4, 3), dtype=FLOAT)
-    xs = np.empty((3, 3), dtype=FLOAT)
     buf = np.empty((2, MAX_POLYGON_VERTICES, 4), dtype=FLOAT)
     count = 0
-    last = -1
-    sx = sy = sz = area2 = 0.0
-    for p in range(pair_tri.shape[0]):
-        out[p] = False
-        t = pair_tri[p]
-        if t != last:
-            last = t
+    n = pair_tri.shape[0]
+    for start in range(0, n, _BLOCK):
+        m = min(_BLOCK, n - start)
+        for k in range(m):
+            t = pair_tri[start + k]
+            c = pair_tet[start + k]
             for a in range(3):
+                v = tri[t, a]
                 for r in range(3):
-                    xs[a, r] = x[tri[t, a], r]
-            area2 = _triangle_area2(xs)
-            sx, sy, sz = _clip_shift(xs)
-        if area2 == 0.0:
-            continue
-        for a in range(4):
-            for r in range(3):
-                xt[a, r] = x[tet[pair_tet[p], a], r]
-        if _tet_gradients(xt, grads) == 0.0:
-            continue
-        _shifted_rows(xs, xt, grads, sx, sy, sz, lam)
-        _snap(lam)
-        # a tetrahedron face plane separating the triangle settles it without clipping, and
-        # so does a triangle vertex strictly inside the tetrahedron
-        separated = False
-        inside = False
-        for j in range(4):
-            if lam[0, j] < 0.0 and lam[1, j] < 0.0 and lam[2, j] < 0.0:
-                separated = True
-        if separated:
-            continue
-        for i in range(3):
-            if lam[i, 0] > 0.0 and lam[i, 1] > 0.0 and lam[i, 2] > 0.0 and lam[i, 3] > 0.0:
-                inside = True
-        if inside or _clip_nonempty(lam, buf):
-            out[p] = True
-            count += 1
+                    w[(3 * a + r) * _BLOCK + k] = x[v, r]
+            for a in range(4):
+                v = tet[c, a]
+                for r in range(3):
+                    w[(9 + 3 * a + r) * _BLOCK + k] = x[v, r]
+        _decide_block(w, m)
+        for k in range(m):
+            decided = w[33 * _BLOCK + k]
+            hit = decided == 1.0
+            if decided == 2.0:
+                for i in range(3):
+                    for j in range(4):
+                        lam[i, j] = w[(21 + 4 * i + j) * _BLOCK + k]
+                hit = _clip_nonempty(lam, buf)
+            out[start + k] = hit
+            count += hit
     return count
 
 
