@@ -152,6 +152,52 @@ def test_jacobian_insertion_matches_sorted_coo(integration):
     A.destroy()
 
 
+def test_summed_passes_match_per_pair_arrays():
+    """The residual and Jacobian passes that sum each chunk of pair gradients and Hessians as
+    the kernel makes them (`_summed`) give the energies, the summed gradient and the pattern's
+    3 x 3 blocks of the per-pair arrays (`_evaluate`) summed afterwards, Dirichlet rows and
+    columns left out; over many chunks, with split tetrahedra among the pairs."""
+    from fenics_matdepth.contact.kernels import _SUM_CHUNK, _accumulate_vertex_blocks
+
+    comm = MPI.COMM_WORLD
+    mesh, V, _, op = _setup(comm, "area")
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    dofs = dolfinx.fem.locate_dofs_topological(V, 2, bottom)
+    op.set_bcs([dolfinx.fem.dirichletbc(dolfinx.fem.Function(V), dofs)])
+    a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    A = op.create_matrix(a)
+    s = op.surface
+    n_pairs = op._intersecting_pairs().size
+    split = s.kernel_tets[op._pair_k[op._intersecting_pairs()], 4] >= 0
+    assert comm.allreduce(n_pairs) > 4 * _SUM_CHUNK * comm.size
+    assert comm.allreduce(int(np.count_nonzero(split))) > 0
+    assert comm.allreduce(int(np.count_nonzero(s.bc))) > 0
+
+    per_pair = op._evaluate(False, True)
+    keys = op._pattern_in_held_numbering()
+    blocks = np.zeros((keys.size, 3, 3))
+    touched = np.zeros(keys.size, dtype=bool)
+    pos = op._coupling_positions()
+    _accumulate_vertex_blocks(pos, per_pair["verts"], per_pair["hess"], s.bc, blocks, touched)
+    dofs_ref, grad_ref = assembly.gradient_array(s, per_pair["verts"], per_pair["grad"])
+    scale_h = comm.allreduce(np.abs(blocks).max(initial=0.0), op=MPI.MAX)
+    scale_g = comm.allreduce(np.abs(grad_ref).max(initial=0.0), op=MPI.MAX)
+    assert scale_h > 0.0 and scale_g > 0.0
+
+    for want_hess in (False, True):
+        op._cache.pop("summed_grad", None)
+        op._cache.pop("summed_hess", None)
+        summed = op._summed(want_hess)
+        assert np.allclose(summed["energy"], per_pair["energy"], rtol=1e-12, atol=0.0)
+        dofs, grad = assembly.gradient_from_sums(s, summed["grad_sum"], summed["reached"])
+        assert np.array_equal(dofs, dofs_ref)
+        assert np.abs(grad - grad_ref).max(initial=0.0) <= 1e-12 * scale_g
+        if want_hess:
+            assert np.array_equal(summed["touched"], touched)
+            assert np.abs(summed["blocks"] - blocks).max(initial=0.0) <= 1e-12 * scale_h
+    A.destroy()
+
+
 def test_couplings_outside_the_pattern():
     """The pattern positions of the pairs' couplings (a search within each vertex's row) equal
     a search of the whole pattern; after the upper box slides further than the pattern's

@@ -29,8 +29,10 @@ __all__ = [
     "create_matrix",
     "global_dofs",
     "gradient_array",
+    "gradient_from_sums",
     "held_keys",
     "hessian_coo",
+    "insert_blocks",
 ]
 
 
@@ -65,6 +67,17 @@ def gradient_array(
     glob = global_dofs(surface, uniq)
     order = np.argsort(glob)
     return glob[order], vals[order]
+
+
+def gradient_from_sums(
+    surface: ContactSurface, grad_sum: np.ndarray, reached: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gradient_array` from the gradient already summed per held dof (``grad_sum``,
+    ``reached``: the dofs some pair has, from ``kernels._area_pairs_summed``)."""
+    uniq = np.flatnonzero(reached).astype(INDEX)
+    glob = global_dofs(surface, uniq)
+    order = np.argsort(glob)
+    return glob[order], grad_sum[uniq][order]
 
 
 def hessian_coo(
@@ -140,11 +153,26 @@ def add_jacobian_blocks(
         verts: (n, m) held vertices of the pairs.
         hess: (n, 3 m, 3 m) pair Hessians.
     """
-    nh = surface.num_held
     blocks = np.zeros((keys.size, 3, 3), dtype=FLOAT)
     touched = np.zeros(keys.size, dtype=bool)
     _accumulate_vertex_blocks(pos, verts, hess, surface.bc, blocks, touched)
-    rows, indptr, cols, vals = _blocks_to_csr(keys, nh, blocks, touched)
+    insert_blocks(A, surface, keys, blocks, touched)
+
+
+def insert_blocks(
+    A: PETSc.Mat, surface: ContactSurface, keys: np.ndarray, blocks: np.ndarray, touched: np.ndarray
+) -> None:
+    """Add the touched 3 x 3 blocks of the held-numbered pattern ``keys`` into ``A`` (not
+    assembled here).
+
+    Args:
+        A: the matrix.
+        surface: what the rank holds.
+        keys: sorted held-numbered coupling keys of the pattern (:func:`held_keys`).
+        blocks: (nk, 3, 3) summed blocks, Dirichlet rows and columns already left out.
+        touched: (nk,) whether a pair reached each key (only those are inserted).
+    """
+    rows, indptr, cols, vals = _blocks_to_csr(keys, surface.num_held, blocks, touched)
     if rows.size:
         A.setValuesIJV(
             indptr.astype(PETSc.IntType),

@@ -984,6 +984,86 @@ def _area_pairs_into(
     )
 
 
+#: Pairs a chunk of `_area_pairs_summed`: their Hessians (3.5 kB each) stay in the cache
+#: between the kernel that writes them and the sums that read them.
+_SUM_CHUNK = 32
+
+
+@njit(cache=True)
+def _sum_pair_rows(
+    tri, tet, pair_tri, pair_tet, start, count, grad, hess, want_hess, pos, bc_mask, grad_sum,
+    reached, blocks, touched,
+):  # fmt: skip
+    """Add rows ``0..count`` of a chunk's pair gradients and Hessians (pairs ``start ..
+    start + count``) into per-dof sums and the pattern's 3 x 3 blocks.
+
+    The same sums, in the same order, as `gradient_array` (``np.bincount`` over the pairs'
+    dofs) and `_accumulate_vertex_blocks` on the materialised arrays.
+    """
+    for q in range(count):
+        p = start + q
+        t = pair_tri[p]
+        k = pair_tet[p]
+        for a in range(7):
+            va = tri[t, a] if a < 3 else tet[k, a - 3]
+            for r in range(3):
+                grad_sum[3 * va + r] += grad[q, 3 * a + r]
+                reached[3 * va + r] = True
+            if not want_hess:
+                continue
+            for b in range(7):
+                key = pos[p, a, b]
+                if key < 0:
+                    continue
+                vb = tri[t, b] if b < 3 else tet[k, b - 3]
+                touched[key] = True
+                for r in range(3):
+                    if bc_mask[3 * va + r]:
+                        continue
+                    for c in range(3):
+                        if not bc_mask[3 * vb + c]:
+                            blocks[key, r, c] += hess[q, 3 * a + r, 3 * b + c]
+
+
+@njit(cache=True)
+def _area_pairs_summed(
+    x, depth, tri, tet, pair_tri, pair_tet, penalty, want_hess, pos, bc_mask, energy, grad_sum,
+    reached, blocks, touched,
+):  # fmt: skip
+    """`_area_pairs` with the gradients (and Hessians) summed as they are made, never
+    materialised for all pairs: chunks of `_SUM_CHUNK` pairs go through the one pair loop
+    (`_area_pairs_core`) into small buffers, which are then added into per-dof sums and the
+    3 x 3 blocks of a fixed vertex-coupling pattern.
+
+    Args:
+        x, depth, tri, tet, pair_tri, pair_tet, penalty: as `_area_pairs` (``tri`` and ``tet``
+            in the numbering of the dofs, ``3 v + c``).
+        want_hess: whether to compute and sum the Hessians.
+        pos: (np, 7, 7) pattern index of each pair coupling, -1 outside the pattern (left
+            out), as `_coupling_positions`; read only if want_hess.
+        bc_mask: (3 nv,) True on Dirichlet dofs, whose Hessian rows and columns are skipped.
+        energy: (np,) output, the pair energies (0 for a pair that does not contribute).
+        grad_sum: (3 nv,) output, added to: the gradient summed over the pairs.
+        reached: (3 nv,) bool output, set True on every dof of a pair.
+        blocks: (nk, 3, 3) output, added to: the Hessians summed into the pattern's blocks
+            (if want_hess); touched: (nk,) bool output, True on every key a pair reaches.
+    """
+    n = pair_tri.shape[0]
+    grad = np.empty((_SUM_CHUNK, 21), dtype=FLOAT)
+    hess = np.empty((_SUM_CHUNK if want_hess else 0, 21, 21), dtype=FLOAT)
+    compact = np.empty(0, dtype=INDEX)  # row q of the buffers is pair start + q
+    for start in range(0, n, _SUM_CHUNK):
+        stop = min(start + _SUM_CHUNK, n)
+        _area_pairs_core(
+            x, depth, tri, tet, pair_tri[start:stop], pair_tet[start:stop], penalty, True,
+            want_hess, compact, energy[start:stop], grad, hess,
+        )  # fmt: skip
+        _sum_pair_rows(
+            tri, tet, pair_tri, pair_tet, start, stop - start, grad, hess, want_hess, pos,
+            bc_mask, grad_sum, reached, blocks, touched,
+        )  # fmt: skip
+
+
 @njit(cache=True)
 def _intersecting(x, tri, tet, pair_tri, pair_tet):
     """Indices of the pairs whose triangle meets the tetrahedron (the exact test of

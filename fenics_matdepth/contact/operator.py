@@ -37,6 +37,7 @@ from fenics_matdepth.contact.kernels import (
     _area_pairs_augmented,
     _area_pairs_max_depth,
     _area_pairs_pressure_moments,
+    _area_pairs_summed,
     _collocation_pairs,
     _intersecting,
     _point_depths,
@@ -126,6 +127,11 @@ class ContactOperator:
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         self._pressure_width = 0.0
+        # output buffers of the summed passes (`_summed`), reused from state to state
+        self._grad_sum = np.empty(0, dtype=FLOAT)
+        self._reached = np.empty(0, dtype=bool)
+        self._blocks = np.empty((0, 3, 3), dtype=FLOAT)
+        self._touched = np.empty(0, dtype=bool)
         # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(self, allow_reference_overlap)
         self.update()
@@ -202,12 +208,74 @@ class ContactOperator:
                 s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[self._pair_a],
                 self._pair_k, self.penalty, want_grad, want_hess,
             )  # fmt: skip
-            pa, pk = self._pair_a, self._pair_k
-        verts = pairs.pair_vertices(s, self.integration, pa, pk)
-        out = {"energy": energy, "grad": grad, "hess": hess, "verts": verts}
+        out = {"energy": energy, "grad": grad, "hess": hess, "verts": self._pair_verts()}
         if self.integration == "area":
             out["active"] = active
         self._cache[key] = out
+        return out
+
+    def _pair_verts(self) -> np.ndarray:
+        """The held vertices of the pairs the kernels evaluate ((n, 7) for the intersecting
+        area pairs, (n, 5) for every collocation pair), kept until the next :meth:`update`."""
+        if "verts" not in self._cache:
+            if self.integration == "area":
+                active = self._intersecting_pairs()
+                pa, pk = self._pair_a[active], self._pair_k[active]
+            else:
+                pa, pk = self._pair_a, self._pair_k
+            self._cache["verts"] = pairs.pair_vertices(self.surface, self.integration, pa, pk)
+        return self._cache["verts"]
+
+    def _sums_fused(self) -> bool:
+        """Whether the residual and Jacobian are summed as the pair kernel makes them
+        (`_summed`; plain penalty with area integration) rather than from the materialised
+        per-pair arrays of `_evaluate`."""
+        return self.integration == "area" and self._pressure is None
+
+    @announces_compilation("the contact pair integrals")
+    def _summed(self, want_hess: bool) -> dict[str, np.ndarray]:
+        """The pairs' energies, their gradient summed per held dof and, with ``want_hess``,
+        their Hessians summed into the pattern's 3 x 3 blocks (``kernels._area_pairs_summed``),
+        kept until the next :meth:`update` (a Hessian pass serves a gradient request).
+
+        The sums are those of :func:`assembly.gradient_array` and
+        :func:`assembly.add_jacobian_blocks` on `_evaluate`'s arrays, in the same order, but
+        the (n, 21, 21) Hessians (36 MB on 10k pairs) are never written: each chunk of pairs is
+        summed while in the cache. The returned arrays are the operator's buffers, valid until
+        the next pass.
+        """
+        if "summed_hess" in self._cache:
+            return self._cache["summed_hess"]
+        if not want_hess and "summed_grad" in self._cache:
+            return self._cache["summed_grad"]
+        s = self.surface
+        active = self._intersecting_pairs()
+        pa, pk = self._pair_a[active], self._pair_k[active]
+        n_dofs = 3 * s.num_held
+        if self._grad_sum.shape[0] != n_dofs:
+            self._grad_sum = np.empty(n_dofs, dtype=FLOAT)
+            self._reached = np.empty(n_dofs, dtype=bool)
+        self._grad_sum.fill(0.0)
+        self._reached.fill(False)
+        if want_hess:
+            pos = self._coupling_positions()
+            nk = self._pattern_in_held_numbering().size
+            if self._blocks.shape[0] != nk:
+                self._blocks = np.empty((nk, 3, 3), dtype=FLOAT)
+                self._touched = np.empty(nk, dtype=bool)
+            self._blocks.fill(0.0)
+            self._touched.fill(False)
+        else:
+            pos = np.empty((0, 7, 7), dtype=INDEX)
+        energy = np.empty(pa.size, dtype=FLOAT)
+        _area_pairs_summed(
+            s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty, want_hess, pos,
+            s.bc, energy, self._grad_sum, self._reached, self._blocks, self._touched,
+        )  # fmt: skip
+        out = {"energy": energy, "grad_sum": self._grad_sum, "reached": self._reached}
+        if want_hess:
+            out["blocks"], out["touched"] = self._blocks, self._touched
+        self._cache["summed_hess" if want_hess else "summed_grad"] = out
         return out
 
     def _intersecting_pairs(self) -> np.ndarray:
@@ -224,10 +292,17 @@ class ContactOperator:
 
     def energy(self) -> float:
         """Contact energy at the last :meth:`update` (collective; energy unit F L)."""
-        return self.comm.allreduce(float(np.sum(self._evaluate(False, False)["energy"])))
+        # a summed pass at this state has the energies too
+        r = self._cache.get("summed_hess") or self._cache.get("summed_grad")
+        if r is None:
+            r = self._evaluate(False, False)
+        return self.comm.allreduce(float(np.sum(r["energy"])))
 
     def gradient_array(self) -> tuple[np.ndarray, np.ndarray]:
         """This rank's gradient contributions: (global dofs, values), duplicates summed."""
+        if self._sums_fused():
+            r = self._summed(want_hess=False)
+            return assembly.gradient_from_sums(self.surface, r["grad_sum"], r["reached"])
         r = self._evaluate(True, False)
         return assembly.gradient_array(self.surface, r["verts"], r["grad"])
 
@@ -253,6 +328,7 @@ class ContactOperator:
             dofs = np.asarray(dofs[:n_owned], dtype=INDEX)
             mask_local[dofs[dofs < n]] = True
         self.surface.set_bcs(mask_local)
+        self._cache.pop("summed_hess", None)  # its blocks leave out the Dirichlet rows
 
     def hessian_coo(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This rank's Hessian contributions (rows, cols, values), duplicates summed, sorted.
@@ -286,7 +362,6 @@ class ContactOperator:
         """
         if bcs is not None:
             self.set_bcs(bcs)
-        r = self._evaluate(False, True)
         pos = self._coupling_positions()
         if self._cache["pattern_missing"]:
             raise RuntimeError(
@@ -295,7 +370,12 @@ class ContactOperator:
                 "operator with a larger margin"
             )
         keys = self._pattern_in_held_numbering()
-        assembly.add_jacobian_blocks(A, self.surface, keys, pos, r["verts"], r["hess"])
+        if self._sums_fused():
+            r = self._summed(want_hess=True)
+            assembly.insert_blocks(A, self.surface, keys, r["blocks"], r["touched"])
+        else:
+            r = self._evaluate(False, True)
+            assembly.add_jacobian_blocks(A, self.surface, keys, pos, r["verts"], r["hess"])
         A.assemble()
 
     # -- sparsity ---------------------------------------------------------------------------
@@ -315,7 +395,7 @@ class ContactOperator:
         pattern until the next :meth:`update` or :meth:`create_matrix` (collective on first
         call at a state)."""
         if "positions" not in self._cache:
-            verts = self._evaluate(False, False)["verts"]
+            verts = self._pair_verts()
             pos, missing = assembly.coupling_positions(
                 self.surface, self._pattern_in_held_numbering(), verts
             )
@@ -338,6 +418,7 @@ class ContactOperator:
         self._held_keys = None
         self._cache.pop("pattern_missing", None)
         self._cache.pop("positions", None)
+        self._cache.pop("summed_hess", None)  # its blocks are those of the old pattern
         return assembly.create_matrix(self.comm, a, self._pattern_keys, self.num_vertices)
 
     # -- augmented Lagrangian (nodal contact pressures; driver: fenics_matdepth.augmented) ---
