@@ -984,6 +984,18 @@ def _area_pairs_into(
     )
 
 
+@njit(cache=True)
+def _add_vertex_block(blocks, key, hess, row, a, b, va, vb, bc_mask):
+    """``blocks[key] +=`` the 3 x 3 block (a, b) of pair Hessian ``hess[row]`` (vertices
+    ``va``, ``vb``), Dirichlet rows and columns left out."""
+    for r in range(3):
+        if bc_mask[3 * va + r]:
+            continue
+        for c in range(3):
+            if not bc_mask[3 * vb + c]:
+                blocks[key, r, c] += hess[row, 3 * a + r, 3 * b + c]
+
+
 #: Pairs a chunk of `_area_pairs_summed`: their Hessians (3.5 kB each) stay in the cache
 #: between the kernel that writes them and the sums that read them.
 _SUM_CHUNK = 32
@@ -1017,12 +1029,7 @@ def _sum_pair_rows(
                     continue
                 vb = tri[t, b] if b < 3 else tet[k, b - 3]
                 touched[key] = True
-                for r in range(3):
-                    if bc_mask[3 * va + r]:
-                        continue
-                    for c in range(3):
-                        if not bc_mask[3 * vb + c]:
-                            blocks[key, r, c] += hess[q, 3 * a + r, 3 * b + c]
+                _add_vertex_block(blocks, key, hess, q, a, b, va, vb, bc_mask)
 
 
 @njit(cache=True)
@@ -1730,12 +1737,7 @@ def _accumulate_vertex_blocks(pos, verts, hess, bc_mask, blocks, touched):
                     continue
                 vb = verts[p, b]
                 touched[k] = True
-                for r in range(3):
-                    if bc_mask[3 * va + r]:
-                        continue
-                    for c in range(3):
-                        if not bc_mask[3 * vb + c]:
-                            blocks[k, r, c] += hess[p, 3 * a + r, 3 * b + c]
+                _add_vertex_block(blocks, k, hess, p, a, b, va, vb, bc_mask)
 
 
 @njit(cache=True)

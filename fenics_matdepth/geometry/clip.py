@@ -436,6 +436,23 @@ _BLOCK = 64
 _ROW = tuple(np.uint64(r * _BLOCK) for r in range(34))
 
 
+@njit(cache=True)
+def _snapped_row_of(dx, dy, dz, g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z):
+    """One corner's row of `_shifted_rows` (``d`` its shifted offset from the tetrahedron's
+    vertex 0, ``g`` the gradients of lambda 1 to 3), snapped as `_snap`; scalars in and out."""
+    v1 = g1x * dx + g1y * dy + g1z * dz
+    v2 = g2x * dx + g2y * dy + g2z * dz
+    v3 = g3x * dx + g3y * dy + g3z * dz
+    v0 = 1.0 - (((0.0 + v1) + v2) + v3)
+    tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
+    return (
+        0.0 if abs(v0) <= tol else v0,
+        0.0 if abs(v1) <= tol else v1,
+        0.0 if abs(v2) <= tol else v2,
+        0.0 if abs(v3) <= tol else v3,
+    )
+
+
 @njit(cache=True, error_model="numpy")
 def _decide_block(w, m):
     """The intersection test of `_intersect_pairs` on the first m pairs of a work block ``w``,
@@ -482,53 +499,27 @@ def _decide_block(w, m):
         g3x *= inv
         g3y *= inv
         g3z *= inv
-        # corner 0: `_shifted_rows`, then `_snap`
-        dx = (x0 - p0x) + sx
-        dy = (y0 - p0y) + sy
-        dz = (z0 - p0z) + sz
-        v1 = g1x * dx + g1y * dy + g1z * dz
-        v2 = g2x * dx + g2y * dy + g2z * dz
-        v3 = g3x * dx + g3y * dy + g3z * dz
-        v0 = 1.0 - (((0.0 + v1) + v2) + v3)
-        tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
-        l00 = 0.0 if abs(v0) <= tol else v0
-        l01 = 0.0 if abs(v1) <= tol else v1
-        l02 = 0.0 if abs(v2) <= tol else v2
-        l03 = 0.0 if abs(v3) <= tol else v3
+        # the three corners' rows: `_shifted_rows`, then `_snap`
+        l00, l01, l02, l03 = _snapped_row_of(
+            (x0 - p0x) + sx, (y0 - p0y) + sy, (z0 - p0z) + sz,
+            g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z,
+        )  # fmt: skip
+        l10, l11, l12, l13 = _snapped_row_of(
+            (x1 - p0x) + sx, (y1 - p0y) + sy, (z1 - p0z) + sz,
+            g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z,
+        )  # fmt: skip
+        l20, l21, l22, l23 = _snapped_row_of(
+            (x2 - p0x) + sx, (y2 - p0y) + sy, (z2 - p0z) + sz,
+            g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z,
+        )  # fmt: skip
         w[_ROW[21] + q] = l00
         w[_ROW[22] + q] = l01
         w[_ROW[23] + q] = l02
         w[_ROW[24] + q] = l03
-        # corner 1: `_shifted_rows`, then `_snap`
-        dx = (x1 - p0x) + sx
-        dy = (y1 - p0y) + sy
-        dz = (z1 - p0z) + sz
-        v1 = g1x * dx + g1y * dy + g1z * dz
-        v2 = g2x * dx + g2y * dy + g2z * dz
-        v3 = g3x * dx + g3y * dy + g3z * dz
-        v0 = 1.0 - (((0.0 + v1) + v2) + v3)
-        tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
-        l10 = 0.0 if abs(v0) <= tol else v0
-        l11 = 0.0 if abs(v1) <= tol else v1
-        l12 = 0.0 if abs(v2) <= tol else v2
-        l13 = 0.0 if abs(v3) <= tol else v3
         w[_ROW[25] + q] = l10
         w[_ROW[26] + q] = l11
         w[_ROW[27] + q] = l12
         w[_ROW[28] + q] = l13
-        # corner 2: `_shifted_rows`, then `_snap`
-        dx = (x2 - p0x) + sx
-        dy = (y2 - p0y) + sy
-        dz = (z2 - p0z) + sz
-        v1 = g1x * dx + g1y * dy + g1z * dz
-        v2 = g2x * dx + g2y * dy + g2z * dz
-        v3 = g3x * dx + g3y * dy + g3z * dz
-        v0 = 1.0 - (((0.0 + v1) + v2) + v3)
-        tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
-        l20 = 0.0 if abs(v0) <= tol else v0
-        l21 = 0.0 if abs(v1) <= tol else v1
-        l22 = 0.0 if abs(v2) <= tol else v2
-        l23 = 0.0 if abs(v3) <= tol else v3
         w[_ROW[29] + q] = l20
         w[_ROW[30] + q] = l21
         w[_ROW[31] + q] = l22
