@@ -845,8 +845,9 @@ class ContactProblem(_Releasable):
         rebuilt = self.assembler.rebuild_matrix_if_needed(register)
         self._resumed_unchanged = self._resumed_unchanged and not rebuilt
         if self._keep_factorisation:
-            # factorise at a solve's start, on a new pattern, and once the kept factorisation
-            # no longer pays (GMRES iterations are counted on every rank alike)
+            # factorise at a solve's start (unless it starts on the last solve's
+            # factorisation), on a new pattern, and once the kept factorisation no longer
+            # pays (GMRES iterations are counted on every rank alike)
             gmres_iterations = self.snes.getKSP().getIterationNumber()
             if iteration > 0 and not self._factorise:
                 self._kept_converged += 1  # (SNES stops where GMRES failed: solve())
