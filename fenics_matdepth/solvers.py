@@ -476,6 +476,28 @@ def _check_problem_inputs(u, contact, bcs) -> None:
             )
 
 
+class _BackOff:
+    """After a failure, the next 1, 2, 4, ... chances are skipped (doubling with each failure
+    in a row), until a success."""
+
+    def __init__(self):
+        self._skip = self._length = 0
+
+    def take(self) -> bool:
+        """Whether this chance may be taken (one chance used either way)."""
+        allowed = self._skip == 0
+        self._skip = max(self._skip - 1, 0)
+        return allowed
+
+    def record(self, failed: bool, succeeded: bool) -> None:
+        """The outcome of a chance taken: a failure lengthens the skip, a success ends it."""
+        if failed:
+            self._length = max(1, 2 * self._length)
+            self._skip = self._length
+        elif succeeded:
+            self._length = 0
+
+
 class _Releasable:
     """``destroy()`` at the end of a ``with`` block, and when Python frees the object. A
     problem is freed only once ``destroy()`` has broken its solver's reference cycle (or if its
@@ -621,14 +643,14 @@ class ContactProblem(_Releasable):
         # this solve's GMRES solves on a kept factorisation that converged and that failed, and
         # its failures on the first GMRES after a factorisation (KEPT_TRIES)
         self._kept_converged = self._kept_failed = self._failed_tries = 0
-        # solves left, and solves to leave next time, that factorise every Jacobian
-        self._keep_skip = self._keep_backoff = 0
-        # the preconditioner holds a factorisation of the current matrix that the next solve
-        # may start on (the last solve converged on it), whether this solve started on it,
-        # and solves left, and to leave next time, that factorise their first Jacobian
-        self._carried_valid = self._carried = False
-        self._carried_penalty = None  # the contact penalty it was factorised with
-        self._carry_skip = self._carry_backoff = 0
+        # solves that factorise every Jacobian after keeping did not pay
+        self._keep_backoff = _BackOff()
+        # the contact penalty of the last solve if it converged (None otherwise): the next
+        # solve may start on its factorisation; whether this solve did; solves that factorise
+        # their first Jacobian after a start on the last factorisation failed
+        self._carried_penalty = None
+        self._carried = False
+        self._carry_backoff = _BackOff()
         # the solve goes on from the iterate reached (a kept factorisation's GMRES failed)
         self._resuming = False
         self._resumed_unchanged = False  # its residual and Jacobian are those of the failure
@@ -893,16 +915,16 @@ class ContactProblem(_Releasable):
         """
         start = self.u.x.petsc_vec.copy()
         # a solve keeps factorisations unless the last ones that tried found it did not pay
-        self._may_keep = self._keep_skip == 0
-        self._keep_skip = max(self._keep_skip - 1, 0)
+        self._may_keep = self._keep_backoff.take()
         self._kept_converged = self._kept_failed = self._failed_tries = 0
         # the first Newton step on the last solve's factorisation (its load changed little)
+        may_carry = self._carry_backoff.take()
         self._carried = (
-            self._keep_factorisation and self._carried_valid and self._may_keep
-            and self._carry_skip == 0 and self.contact.penalty == self._carried_penalty
+            self._keep_factorisation and self._may_keep and may_carry
+            and self.contact.penalty == self._carried_penalty
         )  # fmt: skip
-        self._carry_skip = max(self._carry_skip - 1, 0)
-        self._carried_valid = carried_failed = False
+        self._carried_penalty = None  # (until this solve converges)
+        carried_failed = False
         history = []
         try:
             while True:
@@ -945,20 +967,16 @@ class ContactProblem(_Releasable):
         finally:
             start.destroy()
             self._resuming = self._resumed_unchanged = False
-        if self._kept_failed and not self._kept_converged:
-            self._keep_backoff = max(1, 2 * self._keep_backoff)
-            self._keep_skip = self._keep_backoff
-        elif self._kept_converged:
-            self._keep_backoff = 0
-        if carried_failed:
-            self._carry_backoff = max(1, 2 * self._carry_backoff)
-            self._carry_skip = self._carry_backoff
-        elif self._carried:
-            self._carry_backoff = 0
+        self._keep_backoff.record(
+            failed=self._kept_failed > 0 and not self._kept_converged,
+            succeeded=self._kept_converged > 0,
+        )
+        self._carry_backoff.record(failed=carried_failed, succeeded=self._carried)
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
         reason = int(self.snes.getConvergedReason())
-        self._carried_valid, self._carried_penalty = reason > 0, self.contact.penalty
+        if reason > 0:
+            self._carried_penalty = self.contact.penalty
         result = SolveResult(
             reason > 0, reason, self._iteration_offset, np.asarray(history, dtype=float),
             self.assembler.rejected_states, self.min_det_F(), self.shifted_steps,

@@ -62,11 +62,9 @@ def gradient_array(
     n = 3 * surface.num_held
     reached = np.zeros(n, dtype=bool)
     reached[dofs] = True
-    uniq = np.flatnonzero(reached).astype(INDEX)
-    vals = np.bincount(dofs, weights=grad.ravel(), minlength=n)[uniq]
-    glob = global_dofs(surface, uniq)
-    order = np.argsort(glob)
-    return glob[order], vals[order]
+    return gradient_from_sums(
+        surface, np.bincount(dofs, weights=grad.ravel(), minlength=n), reached
+    )
 
 
 def gradient_from_sums(
