@@ -313,7 +313,7 @@ class ContactAssembler:
         contact.set_bcs(self.bcs)
         self.watch = _Stopwatch()
         self.cells = CellDeterminants(u.function_space)
-        self.matrix = contact.create_matrix(a)
+        self.matrix = contact.create_matrix(a, self.bcs)
         self.pattern_rebuilds = 0
         #: rigid-body modes set on every matrix (for an AMG preconditioner), or None
         self.near_nullspace: PETSc.NullSpace | None = None
@@ -399,7 +399,7 @@ class ContactAssembler:
         if not rebuild:
             return False
         with self.watch("contact_update"):
-            matrix = self.contact.create_matrix(self.a)
+            matrix = self.contact.create_matrix(self.a, self.bcs)
         if self.near_nullspace is not None:
             matrix.setNearNullSpace(self.near_nullspace)
         register(matrix)

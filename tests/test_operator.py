@@ -152,6 +152,80 @@ def test_jacobian_insertion_matches_sorted_coo(integration):
     A.destroy()
 
 
+def test_pattern_without_dirichlet_couplings():
+    """create_matrix(a, bcs) leaves the Dirichlet rows and columns (whole vertices and single
+    components) out of the pattern but for the diagonal; assembled with those conditions it
+    holds the values of the full pattern's matrix, and MUMPS's LDL^T factors hold fewer
+    entries."""
+    from petsc4py import PETSc
+
+    comm = MPI.COMM_WORLD
+    mesh, V, u, op = _setup(comm, "area")
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    upper_top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.8))
+    roller = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], 0.0))
+    bcs = [
+        dolfinx.fem.dirichletbc(
+            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, facets)
+        )
+        for facets in (bottom, upper_top)
+    ] + [
+        dolfinx.fem.dirichletbc(
+            0.0, dolfinx.fem.locate_dofs_topological(V.sub(0), 2, roller), V.sub(0)
+        )
+    ]
+    op.set_bcs(bcs)
+    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
+    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    psi = fm.materials.neo_hookean(F_def, mu, kappa)
+    a = dolfinx.fem.form(ufl.derivative(ufl.derivative(psi * ufl.dx, u), u))
+    n = 3 * op.num_vertices
+    matrices, dense, factor_entries = [], [], []
+    for given in (None, bcs):
+        A = op.create_matrix(a, given)
+        dolfinx.fem.petsc.assemble_matrix(A, a, bcs)
+        A.assemble()
+        op.add_jacobian(A)
+        assert A.getInfo()["mallocs"] == 0
+        indptr, indices, values = A.getValuesCSR()
+        r0, r1 = A.getOwnershipRange()
+        rows = np.repeat(np.arange(r0, r1), np.diff(indptr))
+        matrices.append((rows, indices, values))
+        dense.append(_dense(comm, rows, indices, values, n))
+        ksp = PETSc.KSP().create(comm)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("cholesky")
+        pc.setFactorSolverType("mumps")
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        ksp.setOperators(A)
+        ksp.setUp()
+        factor_entries.append(pc.getFactorMatrix().getMumpsInfog(29))
+        del pc
+        ksp.destroy()
+        A.destroy()
+    scale = np.abs(dense[0]).max()
+    assert np.abs(dense[1] - dense[0]).max() <= 1e-14 * scale
+    fixed = np.flatnonzero(op.surface.gathered()["bc"])  # the same on every rank
+    free = np.setdiff1d(np.arange(n), fixed)
+    whole = fixed[np.isin(fixed // 3 * 3, fixed) & np.isin(fixed // 3 * 3 + 1, fixed)]
+    assert fixed.size > whole.size > 0  # whole vertices and single components
+    stored = []
+    for rows, cols, _ in matrices:
+        mask = np.zeros((n, n), dtype=bool)
+        mask[rows, cols] = True
+        stored.append(comm.allreduce(mask.astype(np.int8)) > 0)
+    full, lean = stored
+    # the full pattern stores zeros off the diagonal of the Dirichlet rows; the lean one none
+    off = ~np.eye(n, dtype=bool)
+    assert (full[fixed] & off[fixed]).any() and not (lean[fixed] & off[fixed]).any()
+    assert not (lean[:, fixed] & off[:, fixed]).any()
+    assert lean[fixed, fixed].all()
+    # the rest of the pattern is kept
+    assert (lean[np.ix_(free, free)] == full[np.ix_(free, free)]).all()
+    assert factor_entries[1] < factor_entries[0]
+
+
 def test_summed_passes_match_per_pair_arrays():
     """The residual and Jacobian passes that sum each chunk of pair gradients and Hessians as
     the kernel makes them (`_summed`) give the energies, the summed gradient and the pattern's

@@ -27,6 +27,7 @@ __all__ = [
     "add_jacobian_blocks",
     "coupling_positions",
     "create_matrix",
+    "global_dirichlet_dofs",
     "global_dofs",
     "gradient_array",
     "gradient_from_sums",
@@ -181,7 +182,13 @@ def insert_blocks(
         )
 
 
-def create_matrix(comm: MPI.Comm, a: dolfinx.fem.Form, keys: np.ndarray, num_vertices: int):
+def create_matrix(
+    comm: MPI.Comm,
+    a: dolfinx.fem.Form,
+    keys: np.ndarray,
+    num_vertices: int,
+    dirichlet: np.ndarray | None = None,
+):
     """A PETSc matrix holding the bulk form's pattern plus the contact vertex couplings.
 
     Args:
@@ -189,6 +196,9 @@ def create_matrix(comm: MPI.Comm, a: dolfinx.fem.Form, keys: np.ndarray, num_ver
         a: the compiled bulk Jacobian form.
         keys: this rank's global vertex-coupling keys ``vi * num_vertices + vj``.
         num_vertices: global number of vertices.
+        dirichlet: sorted global Dirichlet dofs (every rank's), or None. Their rows and
+            columns keep only the diagonal in the pattern, and the matrix ignores the zeros
+            assembly adds there (``MAT_IGNORE_ZERO_ENTRIES``).
 
     Returns:
         An AIJ matrix (block size 3) preallocated exactly, in which insertion never mallocs
@@ -226,6 +236,9 @@ def create_matrix(comm: MPI.Comm, a: dolfinx.fem.Form, keys: np.ndarray, num_ver
     n_global = 3 * num_vertices
     key = np.unique(all_rows * n_global + all_cols)
     rows_u, cols_u = key // n_global, key % n_global
+    if dirichlet is not None:
+        keep = (rows_u == cols_u) | ~(_is_member(rows_u, dirichlet) | _is_member(cols_u, dirichlet))
+        rows_u, cols_u = rows_u[keep], cols_u[keep]
     csr_ptr = np.searchsorted(rows_u, np.arange(r0, r1 + 1)).astype(PETSc.IntType)
 
     A = PETSc.Mat().create(comm=comm)
@@ -235,5 +248,29 @@ def create_matrix(comm: MPI.Comm, a: dolfinx.fem.Form, keys: np.ndarray, num_ver
     A.setLGMap(*bulk.getLGMap())
     A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
     A.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
+    if dirichlet is not None:
+        # assembly with the conditions adds zeros to their rows and columns off the diagonal
+        A.setOption(PETSc.Mat.Option.IGNORE_ZERO_ENTRIES, True)
     bulk.destroy()
     return A
+
+
+def _is_member(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """Whether each of ``values`` is in the sorted array ``sorted_set``."""
+    if sorted_set.size == 0:
+        return np.zeros(values.shape, dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_set, values), sorted_set.size - 1)
+    return sorted_set[at] == values
+
+
+def global_dirichlet_dofs(comm: MPI.Comm, V: dolfinx.fem.FunctionSpace, bcs) -> np.ndarray:
+    """Sorted global (unrolled) dofs of the Dirichlet conditions ``bcs`` on ``V`` or its
+    subspaces, from every rank (collective)."""
+    imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+    owned = [np.empty(0, dtype=INDEX)]
+    for bc in bcs:
+        dofs, n_owned = bc.dof_indices()
+        dofs = np.asarray(dofs[:n_owned], dtype=INDEX)
+        blocks = imap.local_to_global(dofs // bs).astype(INDEX)
+        owned.append(bs * blocks + dofs % bs)
+    return np.unique(np.concatenate(comm.allgather(np.unique(np.concatenate(owned)))))

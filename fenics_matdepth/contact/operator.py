@@ -406,7 +406,11 @@ class ContactOperator:
         return self._cache["positions"]
 
     @announces_compilation("the contact sparsity pattern")
-    def create_matrix(self, a: dolfinx.fem.Form) -> PETSc.Mat:
+    def create_matrix(
+        self,
+        a: dolfinx.fem.Form,
+        bcs: typing.Sequence[dolfinx.fem.DirichletBC] | None = None,
+    ) -> PETSc.Mat:
         """A PETSc matrix holding the bulk form's pattern plus the contact couplings.
 
         The contact part comes from the candidate pairs of triangle boxes inflated by
@@ -415,13 +419,24 @@ class ContactOperator:
 
         Args:
             a: the compiled bulk Jacobian form (``dolfinx.fem.form``).
+            bcs: the Dirichlet conditions the matrix will be assembled with
+                (``assemble_matrix(A, a, bcs)`` and :meth:`add_jacobian`), or None. Given,
+                the rows and columns of their dofs hold only the diagonal: the zeros assembly
+                leaves there are not stored, so a factorisation does not treat them as
+                nonzeros (smaller factors; docs/operator.md). Assemble such a matrix with these
+                conditions only: a nonzero in a Dirichlet row or column raises.
         """
         self._pattern_keys = pairs.pattern_keys(self.surface, self.integration, self.margin)
         self._held_keys = None
         self._cache.pop("pattern_missing", None)
         self._cache.pop("positions", None)
         self._cache.pop("summed_hess", None)  # its blocks are those of the old pattern
-        return assembly.create_matrix(self.comm, a, self._pattern_keys, self.num_vertices)
+        dirichlet = None
+        if bcs is not None:
+            dirichlet = assembly.global_dirichlet_dofs(self.comm, self.u.function_space, bcs)
+        return assembly.create_matrix(
+            self.comm, a, self._pattern_keys, self.num_vertices, dirichlet
+        )
 
     # -- augmented Lagrangian (nodal contact pressures; driver: fenics_matdepth.augmented) ---
 
