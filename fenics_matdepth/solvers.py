@@ -592,11 +592,16 @@ class ContactProblem(_Releasable):
         # Ghosted, as dolfinx's assembly and lifting read and write ghost entries.
         self._b = u.x.petsc_vec.duplicate()
         self._x = u.x.petsc_vec.duplicate()
-        # the residual merit function's last evaluation: point and residual
+        # the last residual assembled (point and residual) and the last energy evaluated
+        # (point and value), valid within a solve: the line search asks its merit function at
+        # the step's start, where it was evaluated as the last step's trial point
         self._x_trial = u.x.petsc_vec.duplicate()
         self._b_trial = u.x.petsc_vec.duplicate()
         self._trial_valid = False
         self._residuals_reused = 0
+        self._x_energy = u.x.petsc_vec.duplicate()
+        self._energy_value = np.nan
+        self._energies_reused = 0
         self.snes = PETSc.SNES().create(comm)
         self.snes.setOptionsPrefix(self.prefix)
         options = dict(_DEFAULT_OPTIONS)
@@ -697,9 +702,17 @@ class ContactProblem(_Releasable):
         if not self.assembler.residual(x, b):
             # An inadmissible trial state: b holds NaN, which the backtracking line search
             # answers by shortening the step (and SNES stops if the start is inadmissible).
+            self._trial_valid = False
             domain_error = getattr(snes, "setFunctionDomainError", None)
             if domain_error is not None:
                 domain_error()
+            return
+        # kept for the residual merit function, which the line search asks at the step's
+        # start (this point) as well as at its trial points
+        if b.handle != self._b_trial.handle:
+            b.copy(self._b_trial)
+        x.copy(self._x_trial)
+        self._trial_valid = True
 
     def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
@@ -712,13 +725,19 @@ class ContactProblem(_Releasable):
 
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         if not self._merit_is_energy:
-            self._trial_valid = False
-            self._residual(snes, x, self._b_trial)
-            x.copy(self._x_trial)
-            self._trial_valid = True
+            if self._trial_valid and x.equal(self._x_trial):
+                self._residuals_reused += 1
+            else:
+                self._trial_valid = False
+                self._residual(snes, x, self._b_trial)
             return 0.5 * self._b_trial.norm() ** 2
+        if np.isfinite(self._energy_value) and x.equal(self._x_energy):
+            self._energies_reused += 1
+            return self._energy_value
         self._set_state(x)
-        return self.assembler.total_energy()
+        self._energy_value = self.assembler.total_energy()
+        x.copy(self._x_energy)
+        return self._energy_value
 
     def _converged(self, snes: PETSc.SNES, iteration: int, norms: tuple) -> int:
         """PETSc's default convergence test (absolute, relative and step tolerances, the
@@ -935,7 +954,8 @@ class ContactProblem(_Releasable):
                     self.shifted_steps = 0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
-                    self._trial_valid = False  # the load may have changed since
+                    # the load may have changed since
+                    self._trial_valid, self._energy_value = False, np.nan
                     start.copy(self._x)
                     history = []
                 self.snes.setConvergenceHistory(reset=True)
@@ -999,7 +1019,7 @@ class ContactProblem(_Releasable):
         destroyed. Destroying the SNES drops the callbacks, and the problem is freed as usual.
         ``with ContactProblem(...) as problem:`` calls it at the end of the block.
         """
-        for obj in ("snes", "_b", "_x", "_x_trial", "_b_trial"):
+        for obj in ("snes", "_b", "_x", "_x_trial", "_b_trial", "_x_energy"):
             if getattr(self, obj, None) is not None:
                 getattr(self, obj).destroy()
         if getattr(self, "assembler", None) is not None:

@@ -568,6 +568,39 @@ def test_residual_of_the_accepted_step_is_reused_and_exact():
         vec.destroy()
 
 
+def test_line_search_start_merit_is_not_evaluated_again():
+    """The line search asks its merit function (the energy, then |F|^2 / 2 near the solution)
+    at the step's start, where the last step's trial evaluated it already, and at its trial
+    points: within a solve no point's residual is assembled twice, nor its energy evaluated
+    twice; with full steps the residual is assembled once per iteration plus once at the
+    start."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    points = {"residual": [], "total_energy": []}
+    for name, seen in points.items():
+        original = getattr(problem.assembler, name)
+
+        def counted(*args, _original=original, _seen=seen):
+            _seen.append(u.x.array.copy())  # the state it is evaluated at
+            return _original(*args)
+
+        setattr(problem.assembler, name, counted)
+    result = problem.solve()
+    assert result.converged and result.iterations >= 3
+    assert not problem._merit_is_energy  # (the last steps were judged by |F|^2 / 2)
+    for name, seen in points.items():
+        assert len(seen) > 1, name
+        twice = [
+            (i, j) for i in range(len(seen)) for j in range(i) if np.array_equal(seen[i], seen[j])
+        ]
+        assert not twice, (name, twice)
+    # (this press takes full steps)
+    assert len(points["residual"]) == result.iterations + 1
+
+
 def _gap_closing(comm, solver: str, mesh=None):
     """The upper block starts 0.05 above the lower one (more than the pattern margin) and its
     top is pushed down 0.08 in two load steps: contact appears outside the first pattern."""
