@@ -117,6 +117,16 @@ def _dense(comm, rows, cols, vals, n) -> np.ndarray:
     return comm.allreduce(out)
 
 
+def _clamped_bottom_and_top(mesh, V) -> list:
+    """Zero displacement on the lower box's bottom (z = 0) and the upper box's top (z = 1.8)."""
+    bcs = []
+    for z in (0.0, 1.8):
+        facets = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x, z=z: np.isclose(x[2], z))
+        dofs = dolfinx.fem.locate_dofs_topological(V, 2, facets)
+        bcs.append(dolfinx.fem.dirichletbc(dolfinx.fem.Function(V), dofs))
+    return bcs
+
+
 @pytest.mark.parametrize("integration", ["area", "collocation"])
 def test_jacobian_insertion_matches_sorted_coo(integration):
     """add_jacobian (pair Hessians summed by numba into the pattern's 3 x 3 blocks) puts into
@@ -124,14 +134,7 @@ def test_jacobian_insertion_matches_sorted_coo(integration):
     all pair entries), with the Dirichlet rows and columns left out."""
     comm = MPI.COMM_WORLD
     mesh, V, _, op = _setup(comm, integration)
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    upper_top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.8))
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, facets)
-        )
-        for facets in (bottom, upper_top)
-    ]
+    bcs = _clamped_bottom_and_top(mesh, V)
     op.set_bcs(bcs)
     a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
     A = op.create_matrix(a)
@@ -161,15 +164,8 @@ def test_pattern_without_dirichlet_couplings():
 
     comm = MPI.COMM_WORLD
     mesh, V, u, op = _setup(comm, "area")
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    upper_top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.8))
     roller = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], 0.0))
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, facets)
-        )
-        for facets in (bottom, upper_top)
-    ] + [
+    bcs = _clamped_bottom_and_top(mesh, V) + [
         dolfinx.fem.dirichletbc(
             0.0, dolfinx.fem.locate_dofs_topological(V.sub(0), 2, roller), V.sub(0)
         )
