@@ -357,6 +357,11 @@ class ContactAssembler:
             dolfinx.fem.petsc.assemble_vector(b, self.L)
         with self.watch("contact_assembly"):
             self.contact.add_residual(b)
+            increment = self._dirichlet_increment(x)
+            if increment is not None:
+                # the contact coupling to the prescribed values not yet reached, as
+                # apply_lifting adds the bulk's: the Newton step is exact
+                self.contact.add_lifting(b, increment)
         with self.watch("bulk_assembly"):
             dolfinx.fem.petsc.apply_lifting(b, [self.a], [self.bcs], x0=[x], alpha=-1.0)
             b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
@@ -416,6 +421,13 @@ class ContactAssembler:
         dolfinx.fem.petsc.set_bc(self._scratch, self.bcs)
         self._scratch.axpy(-1.0, x)
         return self._scratch.norm(PETSc.NormType.NORM_INFINITY)
+
+    def _dirichlet_increment(self, x: PETSc.Vec) -> np.ndarray | None:
+        """``g - x`` on the owned dofs (zero off the Dirichlet dofs), or None where every
+        Dirichlet dof of ``x`` holds its value (collective)."""
+        if self.bc_offset(x) == 0.0:
+            return None
+        return self._scratch.getArray(readonly=True).copy()
 
     def destroy(self) -> None:
         """Release the PETSc objects (collective)."""

@@ -601,6 +601,72 @@ def test_line_search_start_merit_is_not_evaluated_again():
     assert len(points["residual"]) == result.iterations + 1
 
 
+def test_residual_lifts_the_contact_coupling_to_prescribed_values():
+    """With Dirichlet values not yet reached, the residual holds the contact Hessian's share of
+    the lifting, as apply_lifting adds the bulk's: at x with the indenter's prescribed
+    displacement raised by eps d, its free rows equal, to O(eps^2), the residual at x with the
+    indenter moved there (no lifting needed), so the Newton step with the Dirichlet columns
+    zeroed is exact. Without the contact share the difference is O(eps)."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim, tdim)
+    upper = dolfinx.mesh.locate_entities(mesh, tdim, lambda x: x[2] >= 0.5 - 1e-9)
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    # the upper block is a rigid indenter: every one of its dofs prescribed
+    g = dolfinx.fem.Function(V)
+    bcs = [
+        dolfinx.fem.dirichletbc(
+            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
+        ),
+        dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, tdim, upper)),
+    ]
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    g.x.array.reshape(-1, 3)[:, 2] = -0.01
+    assert problem.solve().converged
+    assert contact.diagnostics()["active_pairs"] > 0
+    assembler = problem.assembler
+    x = u.x.petsc_vec.copy()
+    free = ~np.isin(np.arange(x.getLocalSize()), np.concatenate(
+        [bc.dof_indices()[0][: bc.dof_indices()[1]] for bc in bcs]
+    ))  # fmt: skip
+    lifted, moved = x.duplicate(), x.duplicate()
+
+    def differences(eps: float) -> tuple[float, float]:
+        g.x.array.reshape(-1, 3)[:, 2] = -0.01 * (1.0 + eps)
+        # at x, the indenter not yet moved: lifted residual, and its contact share
+        assembler.set_state(x)
+        assert assembler.residual(x, lifted)
+        increment = assembler._dirichlet_increment(x)
+        share = x.duplicate()
+        share.zeroEntries()
+        contact.add_lifting(share, increment)
+        # the indenter moved onto its values
+        y = x.copy()
+        dolfinx.fem.petsc.set_bc(y, bcs)
+        assembler.set_state(y)
+        assert assembler.residual(y, moved)
+        diff = (lifted.getArray() - moved.getArray())[free]
+        out = (
+            np.sqrt(comm.allreduce(float(diff @ diff))),
+            np.sqrt(comm.allreduce(float(share.getArray()[free] @ share.getArray()[free]))),
+        )
+        for vec in (share, y):
+            vec.destroy()
+        return out
+
+    coarse, _ = differences(1e-2)
+    fine, share_fine = differences(1e-3)
+    assert share_fine > 0.0
+    # second order: ten times smaller a step, about a hundred times smaller a difference;
+    # without the contact share the difference would be of the share's size (first order)
+    assert fine <= 0.03 * coarse, (coarse, fine)
+    assert fine <= 0.05 * share_fine, (fine, share_fine)
+    for vec in (x, lifted, moved):
+        vec.destroy()
+
+
 def _gap_closing(comm, solver: str, mesh=None):
     """The upper block starts 0.05 above the lower one (more than the pattern margin) and its
     top is pushed down 0.08 in two load steps: contact appears outside the first pattern."""

@@ -320,6 +320,39 @@ class ContactOperator:
         b.assemblyBegin()
         b.assemblyEnd()
 
+    def add_lifting(self, b: PETSc.Vec, offset: np.ndarray) -> None:
+        """``b += H[:, D] offset[D]``: the contact part of DOLFINx's lifting (collective).
+
+        ``apply_lifting(b, [a], [bcs], x0=[x], alpha=-1)`` adds ``A[:, D] (g - x)[D]`` to the
+        residual, which makes the Newton step with the Dirichlet columns of the Jacobian zeroed
+        the exact Newton step towards the prescribed values ``g``; this adds the contact
+        Hessian's share of that term, from the pairs that have a Dirichlet dof whose value is
+        not yet reached (a body moved by prescribed displacements into contact). Rows of
+        Dirichlet dofs receive it too; ``set_bc`` overwrites them afterwards.
+
+        Args:
+            b: the residual vector (before ``set_bc``).
+            offset: (3 n_owned,) ``g - x`` at the owned Dirichlet dofs of :meth:`set_bcs`,
+                zero elsewhere.
+        """
+        s = self.surface
+        held = s.pull(np.asarray(offset, dtype=FLOAT).reshape(-1, 3)).reshape(-1)
+        dofs = vals = np.empty(0)
+        if held.any():
+            verts = self._pair_verts()
+            pair_dofs = assembly._pair_dofs(verts)
+            moved = held[pair_dofs]
+            sel = np.flatnonzero(moved.any(axis=1))
+            if sel.size:
+                hess = self._evaluate(False, True)["hess"]
+                contrib = np.einsum("pij,pj->pi", hess[sel], moved[sel])
+                keep = ~s.bc[pair_dofs[sel]]
+                dofs = assembly.global_dofs(s, pair_dofs[sel][keep])
+                vals = contrib[keep]
+        b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
+        b.assemblyBegin()
+        b.assemblyEnd()
+
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
         """Remember the Dirichlet dofs, whose rows and columns :meth:`add_jacobian` skips
         (collective)."""
