@@ -413,21 +413,28 @@ class ContactAssembler:
         self.pattern_rebuilds += 1
         return True
 
+    def _bc_gap(self, x: PETSc.Vec) -> PETSc.Vec:
+        """``g - x`` at the Dirichlet dofs, zero elsewhere (a scratch vector; collective)."""
+        x.copy(self._scratch)
+        dolfinx.fem.petsc.set_bc(self._scratch, self.bcs)
+        self._scratch.axpy(-1.0, x)
+        return self._scratch
+
     def bc_offset(self, x: PETSc.Vec) -> float:
         """Largest distance of a Dirichlet dof of ``x`` from its prescribed value (collective)."""
         if not self.bcs:
             return 0.0
-        x.copy(self._scratch)
-        dolfinx.fem.petsc.set_bc(self._scratch, self.bcs)
-        self._scratch.axpy(-1.0, x)
-        return self._scratch.norm(PETSc.NormType.NORM_INFINITY)
+        return self._bc_gap(x).norm(PETSc.NormType.NORM_INFINITY)
 
     def _dirichlet_increment(self, x: PETSc.Vec) -> np.ndarray | None:
         """``g - x`` on the owned dofs (zero off the Dirichlet dofs), or None where every
         Dirichlet dof of ``x`` holds its value (collective)."""
-        if self.bc_offset(x) == 0.0:
+        if not self.bcs:
             return None
-        return self._scratch.getArray(readonly=True).copy()
+        gap = self._bc_gap(x)
+        if gap.norm(PETSc.NormType.NORM_INFINITY) == 0.0:
+            return None
+        return gap.getArray(readonly=True).copy()
 
     def destroy(self) -> None:
         """Release the PETSc objects (collective)."""

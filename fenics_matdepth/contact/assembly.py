@@ -34,6 +34,8 @@ __all__ = [
     "held_keys",
     "hessian_coo",
     "insert_blocks",
+    "owned_dirichlet_dofs",
+    "pair_dofs",
 ]
 
 
@@ -43,7 +45,7 @@ def global_dofs(surface: ContactSurface, held_dofs: np.ndarray) -> np.ndarray:
     return 3 * surface.global_vertex[held_dofs // 3] + held_dofs % 3
 
 
-def _pair_dofs(verts: np.ndarray) -> np.ndarray:
+def pair_dofs(verts: np.ndarray) -> np.ndarray:
     """(n, 3 m) held dofs of pairs over (n, m) held vertices, xyz interleaved."""
     return (3 * verts[:, :, None] + np.arange(3)).reshape(verts.shape[0], 3 * verts.shape[1])
 
@@ -58,7 +60,7 @@ def gradient_array(
         verts: (n, m) held vertices of the pairs.
         grad: (n, 3 m) pair gradients.
     """
-    dofs = _pair_dofs(verts).ravel()
+    dofs = pair_dofs(verts).ravel()
     # summed over the held dofs (linear in what the rank holds, no sort of the pair entries)
     n = 3 * surface.num_held
     reached = np.zeros(n, dtype=bool)
@@ -84,7 +86,7 @@ def hessian_coo(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """This rank's Hessian contributions (global rows, cols, values), duplicates summed,
     sorted; entries in a Dirichlet row or column left out."""
-    dofs = _pair_dofs(verts)
+    dofs = pair_dofs(verts)
     n = dofs.shape[1]
     rows = np.repeat(dofs, n, axis=1).ravel()
     cols = np.tile(dofs, (1, n)).ravel()
@@ -237,7 +239,7 @@ def create_matrix(
     key = np.unique(all_rows * n_global + all_cols)
     rows_u, cols_u = key // n_global, key % n_global
     if dirichlet is not None:
-        keep = (rows_u == cols_u) | ~(_is_member(rows_u, dirichlet) | _is_member(cols_u, dirichlet))
+        keep = (rows_u == cols_u) | ~(np.isin(rows_u, dirichlet) | np.isin(cols_u, dirichlet))
         rows_u, cols_u = rows_u[keep], cols_u[keep]
     csr_ptr = np.searchsorted(rows_u, np.arange(r0, r1 + 1)).astype(PETSc.IntType)
 
@@ -255,22 +257,20 @@ def create_matrix(
     return A
 
 
-def _is_member(values: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
-    """Whether each of ``values`` is in the sorted array ``sorted_set``."""
-    if sorted_set.size == 0:
-        return np.zeros(values.shape, dtype=bool)
-    at = np.minimum(np.searchsorted(sorted_set, values), sorted_set.size - 1)
-    return sorted_set[at] == values
+def owned_dirichlet_dofs(bcs) -> np.ndarray:
+    """The owned (process-local, unrolled) dofs of the Dirichlet conditions ``bcs`` on the
+    displacement space or its subspaces, sorted."""
+    owned = [np.empty(0, dtype=INDEX)]
+    for bc in bcs:
+        dofs, n_owned = bc.dof_indices()
+        owned.append(np.asarray(dofs[:n_owned], dtype=INDEX))
+    return np.unique(np.concatenate(owned))
 
 
 def global_dirichlet_dofs(comm: MPI.Comm, V: dolfinx.fem.FunctionSpace, bcs) -> np.ndarray:
     """Sorted global (unrolled) dofs of the Dirichlet conditions ``bcs`` on ``V`` or its
     subspaces, from every rank (collective)."""
     imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
-    owned = [np.empty(0, dtype=INDEX)]
-    for bc in bcs:
-        dofs, n_owned = bc.dof_indices()
-        dofs = np.asarray(dofs[:n_owned], dtype=INDEX)
-        blocks = imap.local_to_global(dofs // bs).astype(INDEX)
-        owned.append(bs * blocks + dofs % bs)
-    return np.unique(np.concatenate(comm.allgather(np.unique(np.concatenate(owned)))))
+    dofs = owned_dirichlet_dofs(bcs)
+    glob = bs * imap.local_to_global(dofs // bs).astype(INDEX) + dofs % bs
+    return np.unique(np.concatenate(comm.allgather(glob)))

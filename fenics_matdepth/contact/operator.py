@@ -185,34 +185,45 @@ class ContactOperator:
         for have in ("TrueTrue", "TrueFalse", "FalseFalse")[: 3 - want_grad - want_hess]:
             if have in self._cache:
                 return self._cache[have]
+        energy, grad, hess = self._kernel_pass(None, want_grad, want_hess)
+        out = {"energy": energy, "grad": grad, "hess": hess, "verts": self._pair_verts()}
+        if self.integration == "area":
+            out["active"] = self._intersecting_pairs()
+        self._cache[key] = out
+        return out
+
+    def _kernel_pass(
+        self, select: np.ndarray | None, want_grad: bool, want_hess: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pair kernel's (energy, gradient, Hessian) arrays of the pairs `_pair_verts`
+        lists (the intersecting area pairs, every collocation pair), or of its rows
+        ``select``; not kept."""
         s = self.surface
         if self.integration == "area":
             # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
             # still comes out over its 7 original vertices
             active = self._intersecting_pairs()
+            if select is not None:
+                active = active[select]
             pa, pk = self._pair_a[active], self._pair_k[active]
             if self._pressure is None:
-                energy, grad, hess = _area_pairs(
+                return _area_pairs(
                     s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
                     want_grad, want_hess,
                 )  # fmt: skip
-            else:
-                # the pressures of the held vertices (the numbering changes with the halo)
-                held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
-                energy, grad, hess = _area_pairs_augmented(
-                    s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
-                    held_pressure, self._pressure_width, want_grad, want_hess,
-                )  # fmt: skip
-        else:
-            energy, grad, hess = _collocation_pairs(
-                s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[self._pair_a],
-                self._pair_k, self.penalty, want_grad, want_hess,
+            # the pressures of the held vertices (the numbering changes with the halo)
+            held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
+            return _area_pairs_augmented(
+                s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
+                held_pressure, self._pressure_width, want_grad, want_hess,
             )  # fmt: skip
-        out = {"energy": energy, "grad": grad, "hess": hess, "verts": self._pair_verts()}
-        if self.integration == "area":
-            out["active"] = active
-        self._cache[key] = out
-        return out
+        pa, pk = self._pair_a, self._pair_k
+        if select is not None:
+            pa, pk = pa[select], pk[select]
+        return _collocation_pairs(
+            s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[pa], pk, self.penalty,
+            want_grad, want_hess,
+        )  # fmt: skip
 
     def _pair_verts(self) -> np.ndarray:
         """The held vertices of the pairs the kernels evaluate ((n, 7) for the intersecting
@@ -327,8 +338,8 @@ class ContactOperator:
         residual, which makes the Newton step with the Dirichlet columns of the Jacobian zeroed
         the exact Newton step towards the prescribed values ``g``; this adds the contact
         Hessian's share of that term, from the pairs that have a Dirichlet dof whose value is
-        not yet reached (a body moved by prescribed displacements into contact). Rows of
-        Dirichlet dofs receive it too; ``set_bc`` overwrites them afterwards.
+        not yet reached (a body moved by prescribed displacements into contact; only their
+        Hessians are evaluated). Rows of Dirichlet dofs are left out (``set_bc`` writes them).
 
         Args:
             b: the residual vector (before ``set_bc``).
@@ -340,12 +351,12 @@ class ContactOperator:
         dofs = vals = np.empty(0)
         if held.any():
             verts = self._pair_verts()
-            pair_dofs = assembly._pair_dofs(verts)
+            pair_dofs = assembly.pair_dofs(verts)
             moved = held[pair_dofs]
             sel = np.flatnonzero(moved.any(axis=1))
             if sel.size:
-                hess = self._evaluate(False, True)["hess"]
-                contrib = np.einsum("pij,pj->pi", hess[sel], moved[sel])
+                _, _, hess = self._kernel_pass(sel, True, True)
+                contrib = np.einsum("pij,pj->pi", hess, moved[sel])
                 keep = ~s.bc[pair_dofs[sel]]
                 dofs = assembly.global_dofs(s, pair_dofs[sel][keep])
                 vals = contrib[keep]
@@ -358,10 +369,8 @@ class ContactOperator:
         (collective)."""
         n = self.surface.owned_dof_count()
         mask_local = np.zeros(n, dtype=bool)
-        for bc in bcs:
-            dofs, n_owned = bc.dof_indices()
-            dofs = np.asarray(dofs[:n_owned], dtype=INDEX)
-            mask_local[dofs[dofs < n]] = True
+        dofs = assembly.owned_dirichlet_dofs(bcs)
+        mask_local[dofs[dofs < n]] = True
         self.surface.set_bcs(mask_local)
         self._cache.pop("summed_hess", None)  # its blocks leave out the Dirichlet rows
 
