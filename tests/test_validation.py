@@ -8,6 +8,7 @@ and the reasoning behind each tolerance. Run with ``pytest -s`` to see the measu
 from __future__ import annotations
 
 import importlib.util
+import warnings
 from pathlib import Path
 
 from mpi4py import MPI
@@ -21,6 +22,7 @@ from test_operator import _box_tets, _residual
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
+from fenics_matdepth.contact.operator import DepthDeficiencyWarning
 from fenics_matdepth.depth import boundary_triangles, distance_to_triangles
 
 MESHES = Path(__file__).resolve().parents[1] / "meshes"
@@ -138,6 +140,51 @@ def _symmetric_material_depth(mesh, planes: list[tuple[int, float]], tol: float)
     depth = dolfinx.fem.Function(Q, name="material_depth")
     depth.x.array[:] = distance_to_triangles(Q.tabulate_dof_coordinates(), triangles[~on_plane])
     return depth
+
+
+def test_hertz_full_model_is_four_quarters():
+    """``meshes/hertz.py``'s full model (the peer's, ``full=True``) against its quarter: each
+    body's volume four times the quarter's (the block's exactly, the faceted hemisphere's to the
+    chords' error), no symmetry-plane facets, the block's top at z = 0 spanning [-W, W]^2, the
+    sphere's pole a vertex at the origin, and the two bodies touching there without overlapping
+    (the contact operator accepts the reference configuration)."""
+    pytest.importorskip("gmsh")
+    hertz = _mesh_script("hertz")
+    comm = MPI.COMM_WORLD
+    sizes = dict(radius=1.0, block_width=1.0, block_depth=1.0, contact_size=0.1, far_size=0.2)
+    volumes = {}
+    for full in (False, True):
+        mesh, cell_tags, facet_tags = hertz.hertz_mesh(comm, full=full, **sizes)
+        dx = ufl.Measure("dx", domain=mesh, subdomain_data=cell_tags)
+        volumes[full] = [
+            comm.allreduce(dolfinx.fem.assemble_scalar(dolfinx.fem.form(1.0 * dx(tag))), op=MPI.SUM)
+            for tag in (hertz.BLOCK, hertz.SPHERE)
+        ]
+        symmetry = [len(facet_tags.find(t)) for t in (hertz.SYMMETRY_X, hertz.SYMMETRY_Y)]
+        symmetry = comm.allreduce(sum(symmetry), op=MPI.SUM)
+        x = np.concatenate(comm.allgather(mesh.geometry.x[: mesh.geometry.index_map().size_local]))
+        lo, hi = x.min(axis=0), x.max(axis=0)
+        at_origin = int(np.sum(np.linalg.norm(x, axis=1) < 1e-12))
+        if full:
+            assert symmetry == 0
+            np.testing.assert_allclose(lo, [-1.0, -1.0, -1.0], atol=1e-12)
+            # the block's top face has no vertex at the origin in the peer's mesh; the pole has
+            assert at_origin == 1
+            V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+            with warnings.catch_warnings():  # the far field's tetrahedra are split: expected
+                warnings.simplefilter("ignore", DepthDeficiencyWarning)
+                fm.ContactOperator(dolfinx.fem.Function(V), fm.material_depth(mesh), penalty=1.0)
+        else:
+            assert symmetry > 0
+            np.testing.assert_allclose(lo, [0.0, 0.0, -1.0], atol=1e-12)
+            assert at_origin == 2  # the block's corner and the pole
+        np.testing.assert_allclose(hi, [1.0, 1.0, 1.0], atol=1e-12)
+    assert volumes[True][0] == pytest.approx(4 * volumes[False][0], rel=1e-12)
+    assert volumes[True][0] == pytest.approx(2.0 * 2.0 * 1.0, rel=1e-12)  # [-W, W]^2 x [-H, 0]
+    hemisphere = 2 * np.pi / 3
+    for full, copies in ((True, 1), (False, 4)):
+        # chords of length h <= 0.2 sag by h^2 / (8 R) = 0.005: about 1.5 % of the volume
+        assert copies * volumes[full][1] == pytest.approx(hemisphere, rel=0.025)
 
 
 def test_hertz_contact_radius_and_approach():
