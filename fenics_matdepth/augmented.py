@@ -414,6 +414,13 @@ class RigidModeDamping:
     to 0 and a last solve, from that nearly balanced state, removes the remaining damping
     force: the result solves the undamped problem.
 
+    After a call that converged, contact held the body at its end, and the next call (the next
+    load step, or the next solve of an :class:`AugmentedLagrangian`) first solves the undamped
+    problem from where it starts (``undamped_first``); only if that fails does it restore the
+    start and run the damped solves. Measured on ``benchmarks/bench_hertz.py`` (the full model,
+    res 1.0, penalty 10 E/h): every load step took 4 or 5 solves and 12 to 14 Newton
+    iterations with the damped solves in every step (docs/solvers.md).
+
     Args:
         problem: a contact problem whose energy and residual include the damping term.
         stiffness: the ``Constant`` k of :func:`damping_energy` (its value is the k used).
@@ -424,6 +431,7 @@ class RigidModeDamping:
         decrease: factor on k from one damped solve to the next, in (0, 1].
         inner_rtol: the solves after the first stop at this fraction of the first solve's
             initial residual at the latest (see :class:`AugmentedLagrangian`).
+        undamped_first: after a converged call, try the undamped solve first (see above).
     """
 
     def __init__(
@@ -435,6 +443,7 @@ class RigidModeDamping:
         max_solves: int = 20,
         decrease: float = 0.1,
         inner_rtol: float = 1e-6,
+        undamped_first: bool = True,
     ):
         self.problem = problem
         self.u = problem.u
@@ -446,8 +455,11 @@ class RigidModeDamping:
         self.max_solves = int(max_solves)
         self.decrease = float(decrease)
         self.inner_rtol = float(inner_rtol)
+        self.undamped_first = bool(undamped_first)
         #: damped solves in the last :meth:`solve`
         self.damped_solves = 0
+        #: whether the last :meth:`solve` converged (contact held the body at its end)
+        self.held = False
 
     @property
     def snes(self):
@@ -455,28 +467,35 @@ class RigidModeDamping:
         return getattr(self.problem, "snes", None)
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
-        """Damped solves until ``u`` settles, then one undamped solve (collective)."""
+        """Damped solves until ``u`` settles, then one undamped solve (collective); after a
+        converged call the undamped solve first (``undamped_first``)."""
         comm = self.u.function_space.mesh.comm
         start = self.u.x.array.copy()
-        iterations, rejected, norms, shifted, factorisations = 0, 0, [], 0, 0
-        self._k.value = self.stiffness
+        results: list[SolveResult] = []
         self.damped_solves = 0
-        result = None
         first_norm = None
+
+        def solve_once():
+            with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
+                results.append(self.problem.solve(raise_on_failure=False))
+            return results[-1]
+
         try:
-            for j in range(self.max_solves):
+            result = None
+            if self.undamped_first and self.held:
+                self._k.value = 0.0
+                result = solve_once()
+                if not result.converged:
+                    # contact no longer holds the body: damped solves from the start
+                    self.u.x.array[:] = start
+                    self.u.x.scatter_forward()
+            for j in range(self.max_solves if result is None or not result.converged else 0):
                 self._k.value = self.stiffness * self.decrease**j
                 self.anchor.x.array[:] = self.u.x.array
-                with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
-                    result = self.problem.solve(raise_on_failure=False)
+                result = solve_once()
                 if first_norm is None and len(result.residual_norms):
                     first_norm = float(result.residual_norms[0])
                 self.damped_solves += 1
-                iterations += result.iterations
-                rejected += result.rejected_states
-                shifted += result.shifted_steps
-                factorisations += result.factorisations
-                norms.append(np.asarray(result.residual_norms))
                 r = result.residual_norms
                 if not result.converged:
                     # a damped solve only has to make progress: the undamped solve at the end
@@ -492,21 +511,18 @@ class RigidModeDamping:
                 total = comm.allreduce(float(np.max(np.abs(local - start))), op=MPI.MAX)
                 if step <= self.rtol * total or self.decrease ** (j + 1) < 1e-6:
                     break
-            if result is not None and result.converged:
+            if self.damped_solves and result.converged:
                 self._k.value = 0.0
-                with _absolute_tolerance(self.problem, first_norm, self.inner_rtol):
-                    result = self.problem.solve(raise_on_failure=False)
-                iterations += result.iterations
-                rejected += result.rejected_states
-                shifted += result.shifted_steps
-                factorisations += result.factorisations
-                norms.append(np.asarray(result.residual_norms))
+                result = solve_once()
         finally:
             self._k.value = 0.0
         out = SolveResult(
-            result.converged, result.reason, iterations, np.concatenate(norms), rejected,
-            result.min_det_F, shifted, factorisations,
+            result.converged, result.reason, sum(r.iterations for r in results),
+            np.concatenate([np.asarray(r.residual_norms) for r in results]),
+            sum(r.rejected_states for r in results), result.min_det_F,
+            sum(r.shifted_steps for r in results), sum(r.factorisations for r in results),
         )  # fmt: skip
+        self.held = out.converged
         if raise_on_failure and not out.converged:
             raise RuntimeError(out.failure_message())
         return out

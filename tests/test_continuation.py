@@ -241,3 +241,65 @@ def test_damping_only_in_the_first_stage():
     assert seen == pytest.approx(first + [0.0, 0.0], rel=1e-12, abs=0.0)
     assert fake.penalties == pytest.approx([1.0] * 8 + [10.0, 100.0], rel=1e-12)
     assert [s.newton_iterations for s in solver.history] == [8 * 3, 3, 3]
+
+
+class _HeldWhile:
+    """Wraps a problem; records the damping stiffness of each solve; a solve with k = 0 fails
+    (NaN in u, as a diverged solve) while ``free`` (the body not held by contact), any other
+    adds 1 to u."""
+
+    def __init__(self, problem, stiffness):
+        self.u, self.contact, self.stiffness = problem.u, problem.contact, stiffness
+        self.free = False
+        self.seen: list[float] = []
+
+    def solve(self, raise_on_failure: bool = True) -> SolveResult:
+        self.seen.append(self.stiffness.value)
+        if self.stiffness.value == 0.0 and self.free:
+            self.u.x.array[:] = np.nan
+            return SolveResult(False, -5, 50, np.array([1.0, 0.5]))
+        self.u.x.array[:] += 1.0
+        return SolveResult(True, 2, 3, np.array([1.0, 1e-12]))
+
+
+def test_damping_only_until_contact_holds_the_body():
+    """RigidModeDamping: the first call runs the damped solves (falling k) and the undamped one;
+    after a converged call the next solves the undamped problem alone; where that fails (the
+    body came free) the start is restored and the damped solves run again from it."""
+    comm = MPI.COMM_WORLD
+    problem, _ = _touching_problem(comm)
+    start = problem.u.x.array.copy()
+    stiffness = types.SimpleNamespace(value=1.0)
+    anchor = types.SimpleNamespace(x=types.SimpleNamespace(array=problem.u.x.array.copy()))
+    fake = _HeldWhile(problem, stiffness)
+    damped = fm.RigidModeDamping(fake, stiffness, anchor, decrease=0.1)
+    # each fake solve moves u by 1: the damped solves never settle and stop after 7 (k = 1 to
+    # 1e-6); then one undamped solve
+    sequence = [0.1**j for j in range(7)] + [0.0]
+    first = damped.solve()
+    assert first.converged and first.iterations == 8 * 3 and damped.damped_solves == 7
+    assert fake.seen == pytest.approx(sequence, rel=1e-12, abs=0.0)
+    fake.seen.clear()
+    second = damped.solve()
+    assert second.converged and second.iterations == 3 and damped.damped_solves == 0
+    assert fake.seen == [0.0]
+    assert np.array_equal(problem.u.x.array, start + 9.0)
+    fake.seen.clear()
+    fake.free = True
+    with pytest.raises(RuntimeError):
+        damped.solve()  # the undamped try fails, then the damped ones end in a failing k = 0
+    assert fake.seen == pytest.approx([0.0] + sequence, rel=1e-12, abs=0.0)
+    assert not damped.held
+    fake.seen.clear()
+    fake.free = False
+    problem.u.x.array[:] = start  # as solve_load_steps restores a failed step's start
+    third = damped.solve()  # not held after a failure: damped solves first
+    assert fake.seen == pytest.approx(sequence, rel=1e-12, abs=0.0)
+    assert third.converged and np.all(np.isfinite(problem.u.x.array))
+    assert stiffness.value == 0.0
+    stiffness.value = 1.0  # the k to start from, read by the constructor
+    never = fm.RigidModeDamping(fake, stiffness, anchor, decrease=0.1, undamped_first=False)
+    never.solve()
+    fake.seen.clear()
+    never.solve()
+    assert fake.seen == pytest.approx(sequence, rel=1e-12, abs=0.0)
