@@ -100,17 +100,10 @@ _KEPT_FACTORISATION_OPTIONS = {
 #: benchmarks/bench_linear.py on the press's contact Jacobian (CPU seconds of set-up + solve):
 #: 24.7k dofs LU 1.24, GAMG 1.19; 92.3k dofs LU 12.2, GAMG 4.5; 282k dofs GAMG 16.9.
 AMG_MIN_DOFS = 50_000
-#: The Krylov solve stops at 1e-6 of the residual: an inexact Newton step whose error shrinks
-#: the residual a millionfold at worst, which Newton's own convergence overtakes only below
-#: that. Measured against 1e-9, each pair side by side: bench_newton.py at 161k tetrahedra,
-#: the same 10 Newton iterations with the same residuals to the digits printed (down to 1e-16),
-#: linear solve 2.30 s per iteration against 3.03 s; bench_hertz.py --model full at res 0.35
-#: (penalty), 36 Newton iterations against 37, the same p_max, overlap and radius, linear
-#: solve 64.4 s against 72.6 s, the load steps 101.5 s against 106.0 s.
 _AMG_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 200,
-    "ksp_rtol": 1e-6,
+    "ksp_rtol": 1e-9,
     "ksp_max_it": 1000,
     "pc_type": "gamg",
     "pc_gamg_threshold": 0.01,
