@@ -5,10 +5,14 @@ Set-up as the peer's demo: a hemisphere of radius R = 8 (lower half of a ball) r
 20 x 20 x 20 block, both linearly elastic with E = 200, nu = 0.3; a body force of density
 ``3 L / (4 pi R^3)`` (L = 2 R 0.625 = 10) acts on the hemisphere, applied in 4 load steps; the
 block's bottom is clamped. The mesh size is ``res`` within R/2 of the contact point and grows
-to ``2 res`` at distance R (the peer's gmsh Threshold field). Here the quarter model of
-``meshes/hertz.py`` (symmetry planes x = 0, y = 0 on rollers, material depth of the full
-bodies) replaces the peer's full model with three pinned sphere nodes; the hemisphere is held
-vertically only by contact, as in the peer's demo.
+to ``2 res`` at distance R (the peer's gmsh Threshold field). ``--model full`` solves the
+peer's full model: its mesh (``meshes/hertz.py``, ``full=True``: 1959 vertices and 8304 cells
+at res 1.0, where the peer's has 1962 and 8323) and its supports, the block's bottom clamped and
+x and y held at the three sphere vertices nearest to the sphere's centre (0, 0, R), to
+(0, 0, R/2) and to (0, R/2, R/2) (the peer pins the mesh nodes nearest to those points); this
+is the default. ``--model quarter`` solves a quarter of it (symmetry planes x = 0, y = 0 on
+rollers, material depth of the full bodies), about a quarter of the vertices. Either way the
+hemisphere is held vertically only by contact, as in the peer's demo.
 
 The body force on the hemisphere (volume 2 pi R^3 / 3) totals ``L / 2 = 5``; the Hertz values
 are those of the force the contact transmits, which equilibrium makes equal to it (printed).
@@ -53,7 +57,7 @@ pressure is then ``(eps + p / w) g`` and its integral ``int (eps + p / w) g dA``
 the vertex's nodal pressure in place of ``p_T`` (approximate).
 
 Run: ``scripts/fenicsx python3 benchmarks/bench_hertz.py --res 1.0 0.5 [--method both]
-[--pressure-term quadratic]``.
+[--model quarter|full] [--pressure-term quadratic] [--petsc pc_type=cholesky ...]``.
 Prints figures; asserts nothing.
 """
 
@@ -188,6 +192,28 @@ def _stress_pressure_max(comm, V, u, mu, lmbda, cell, tri, normal, select):
     return best if np.isfinite(best[0]) else (0.0, np.nan)
 
 
+def _nearest_vertices(mesh, cells, points):
+    """Local indices of the mesh vertices of ``cells`` nearest to each of ``points`` (one each,
+    the nearest over all ranks; a rank holding it, owned or ghost, returns it; collective)."""
+    mesh.topology.create_connectivity(3, 0)
+    mesh.topology.create_connectivity(0, 3)  # for locate_dofs_topological on the vertices
+    c2v = mesh.topology.connectivity(3, 0)
+    vertices = np.unique(np.asarray(c2v.array).reshape(-1, 4)[cells])
+    # P1 geometry: vertex i sits at geometry node x_dofmap[c][j] of a cell holding it
+    geom = np.asarray(mesh.geometry.dofmap)[cells].ravel()
+    topo = np.asarray(c2v.array).reshape(-1, 4)[cells].ravel()
+    coords = np.empty((mesh.topology.index_map(0).size_local
+                       + mesh.topology.index_map(0).num_ghosts, 3))  # fmt: skip
+    coords[topo] = mesh.geometry.x[geom]
+    found = []
+    for point in points:
+        d = np.linalg.norm(coords[vertices] - np.asarray(point), axis=1)
+        best = float(d.min()) if d.size else np.inf
+        nearest = mesh.comm.allreduce(best, op=MPI.MIN)
+        found.extend(vertices[d <= nearest * (1 + 1e-12)].tolist() if d.size else [])
+    return np.unique(np.asarray(found, dtype=np.int32))
+
+
 def _gather(V, rows):
     n_owned = V.dofmap.index_map.size_local
     return np.concatenate(V.mesh.comm.allgather(np.asarray(rows)[:n_owned]))
@@ -205,12 +231,16 @@ def run(
     growth: float = 10.0,
     damping: bool = True,
     pressure_term: str = "linear",
+    model: str = "quarter",
+    petsc_options: dict | None = None,
 ) -> dict:
     comm = MPI.COMM_WORLD
     hertz = _hertz_module()
+    full = model == "full"
+    copies = 1 if full else 4  # of the meshed bodies in the full problem
     mesh, cell_tags, facet_tags = hertz.hertz_mesh(
         comm, radius=RADIUS, block_width=WIDTH / 2, block_depth=DEPTH, contact_size=res,
-        far_size=2 * res, refine_radius=RADIUS / 2, coarsen_radius=RADIUS,
+        far_size=2 * res, refine_radius=RADIUS / 2, coarsen_radius=RADIUS, full=full,
     )  # fmt: skip
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -236,17 +266,28 @@ def run(
         return dolfinx.fem.dirichletbc(zero, dofs, V.sub(component))
 
     bottom = dolfinx.fem.locate_dofs_topological(V, 2, facet_tags.find(hertz.BLOCK_BOTTOM))
-    bcs = [
-        roller(hertz.SYMMETRY_X, 0),
-        roller(hertz.SYMMETRY_Y, 1),
-        dolfinx.fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), bottom, V),
-    ]
-    depth = _full_body_depth(mesh, 1e-9 * RADIUS)
+    bcs = [dolfinx.fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), bottom, V)]
+    if full:
+        # the peer's supports: x and y of three sphere vertices (which remove the sphere's
+        # horizontal rigid motions and leave the vertical one to contact)
+        points = [(0.0, 0.0, RADIUS), (0.0, 0.0, RADIUS / 2), (0.0, RADIUS / 2, RADIUS / 2)]
+        pins = _nearest_vertices(mesh, cell_tags.find(hertz.SPHERE), points)
+        bcs += [
+            dolfinx.fem.dirichletbc(
+                zero, dolfinx.fem.locate_dofs_topological(V.sub(c), 0, pins), V.sub(c)
+            )
+            for c in (0, 1)
+        ]
+        depth = fm.material_depth(mesh)
+    else:
+        bcs += [roller(hertz.SYMMETRY_X, 0), roller(hertz.SYMMETRY_Y, 1)]
+        depth = _full_body_depth(mesh, 1e-9 * RADIUS)
     penalty = fm.propose_penalty(mesh, YOUNGS, factor=factor)
     contact = fm.ContactOperator(u, depth, penalty=penalty)
     problem = fm.ContactProblem(
-        residual, u, contact, bcs=bcs, energy=energy, petsc_options={"snes_rtol": 1e-8}
-    )
+        residual, u, contact, bcs=bcs, energy=energy,
+        petsc_options={"snes_rtol": 1e-8} | (petsc_options or {}),
+    )  # fmt: skip
     force = LOAD / 2
     e_star = YOUNGS / (2 * (1 - POISSON**2))
     a_theory = (3 * force * RADIUS / (4 * e_star)) ** (1 / 3)
@@ -308,7 +349,7 @@ def run(
     p_ref = _hertz_nodal_pressure(tri[flat], key, int(top.sum()), p0, a_theory)
     pole = int(np.argmin(r2))
     a_moment = np.sqrt(2.5 * np.sum(fz * r2) / np.sum(fz))
-    transmitted = 4 * np.sum(f[sphere, 2])
+    transmitted = copies * np.sum(f[sphere, 2])
     overlap = contact.max_penetration()
 
     # the peer's measure: the normal traction -sigma(u) n . n of the bulk stress on the contact
@@ -360,6 +401,7 @@ def run(
     lumped = pointwise * np.bincount(tri_v.ravel(), weights=np.repeat(third, 3), minlength=n)
     out = {
         "res": res,
+        "model": model,
         "method": method,
         "vertices": n,
         "cells": mesh.topology.index_map(3).size_global,
@@ -370,7 +412,7 @@ def run(
         "cuts": sum(s.cuts for s in load_steps),
         "seconds": seconds,
         "force": transmitted,
-        "force_block": 4 * np.sum(fz),
+        "force_block": copies * np.sum(fz),
         "delta": delta,
         "overlap_delta": overlap / delta,
         "p0": p0,
@@ -388,10 +430,10 @@ def run(
         "p_point_sphere": float(pointwise[sphere_pole]),
         "p_point": float(pointwise[block_pole] + pointwise[sphere_pole]),
         "p_point_error": float(pointwise[block_pole] + pointwise[sphere_pole]) / p0 - 1,
-        "carried_block": 4 * float(carried[~sphere].sum()),
-        "carried_sphere": 4 * float(carried[sphere].sum()),
-        "lumped_block": 4 * float(lumped[~sphere].sum()),
-        "lumped_sphere": 4 * float(lumped[sphere].sum()),
+        "carried_block": copies * float(carried[~sphere].sum()),
+        "carried_sphere": copies * float(carried[sphere].sum()),
+        "lumped_block": copies * float(lumped[~sphere].sum()),
+        "lumped_sphere": copies * float(lumped[sphere].sum()),
         "a": a_theory,
         "a_moment": a_moment,
         "a_error": a_moment / a_theory - 1,
@@ -424,6 +466,14 @@ def main() -> None:
         "--tol", type=float, default=0.05, help="augmented: overlap tolerance / delta"
     )
     parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument(
+        "--model",
+        choices=["quarter", "full"],
+        default="full",
+        help="full: the peer's full model and supports; quarter: a quarter of it on symmetry "
+        "planes (about a quarter of the vertices)",
+    )
+    parser.add_argument("--petsc", nargs="*", default=[], help="extra PETSc options key=value")
     parser.add_argument(
         "--relaxation",
         type=float,
@@ -461,7 +511,7 @@ def main() -> None:
                 row = run(
                     res, method, factor, args.tol, args.steps, args.relaxation,
                     args.max_updates, args.start_factor, args.growth, not args.no_damping,
-                    args.pressure_term,
+                    args.pressure_term, args.model, dict(o.split("=", 1) for o in args.petsc),
                 )  # fmt: skip
             except RuntimeError as err:
                 if MPI.COMM_WORLD.rank == 0:
@@ -470,7 +520,7 @@ def main() -> None:
             rows.append(row)
             if MPI.COMM_WORLD.rank == 0:
                 print(
-                    f"res {res:4.2f} {label(row):9s} {row['vertices']:6d} vertices "
+                    f"res {res:4.2f} {args.model} {label(row):9s} {row['vertices']:6d} vertices "
                     f"{row['cells']:6d} cells  eps {row['penalty']:.4g} "
                     f"({row['factor']:g} E/h)  newton {row['newton']:3d}"
                     f"{'  updates ' + str(row['updates']) if 'updates' in row else ''}  "
