@@ -53,10 +53,9 @@ def bulk_newton_iteration(
     solver and options of ``like`` (its options prefix: tolerances, GMRES restart, the GAMG
     threshold; the rigid-body near-nullspace for GAMG; the symbolic factorisation reused after
     the first solve, as a Newton loop with a fixed pattern does); the mean of ``repeats``
-    iterations after the first
-    (collective). The matrix as dolfinx makes it (its Dirichlet rows and columns hold zeros),
-    or with ``lean`` the pattern ContactProblem's matrix has without its contact couplings
-    (those rows and columns hold only the diagonal)."""
+    iterations after the first (collective). The matrix as dolfinx makes it (its Dirichlet
+    rows and columns hold zeros), or with ``lean`` the pattern ContactProblem's matrix has
+    without its contact couplings (those rows and columns hold only the diagonal)."""
     comm = u.function_space.mesh.comm
     F = dolfinx.fem.form(residual)
     J = dolfinx.fem.form(ufl.derivative(residual, u))

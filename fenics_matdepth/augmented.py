@@ -418,8 +418,9 @@ class RigidModeDamping:
     load step, or the next solve of an :class:`AugmentedLagrangian`) first solves the undamped
     problem from where it starts (``undamped_first``); only if that fails does it restore the
     start and run the damped solves. Measured on ``benchmarks/bench_hertz.py`` (the full model,
-    res 1.0, penalty 10 E/h): every load step took 4 or 5 solves and 12 to 14 Newton
-    iterations with the damped solves in every step (docs/solvers.md).
+    res 1.0, penalty 10 E/h): with the damped solves in every step each load step took 4 or 5
+    solves and 12 to 14 Newton iterations; now the steps after the first take one solve of 4 or
+    5 iterations (docs/solvers.md).
 
     Args:
         problem: a contact problem whose energy and residual include the damping term.
