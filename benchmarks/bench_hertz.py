@@ -192,26 +192,17 @@ def _stress_pressure_max(comm, V, u, mu, lmbda, cell, tri, normal, select):
     return best if np.isfinite(best[0]) else (0.0, np.nan)
 
 
-def _nearest_vertices(mesh, cells, points):
-    """Local indices of the mesh vertices of ``cells`` nearest to each of ``points`` (one each,
-    the nearest over all ranks; a rank holding it, owned or ghost, returns it; collective)."""
-    mesh.topology.create_connectivity(3, 0)
-    mesh.topology.create_connectivity(0, 3)  # for locate_dofs_topological on the vertices
-    c2v = mesh.topology.connectivity(3, 0)
-    vertices = np.unique(np.asarray(c2v.array).reshape(-1, 4)[cells])
-    # P1 geometry: vertex i sits at geometry node x_dofmap[c][j] of a cell holding it
-    geom = np.asarray(mesh.geometry.dofmap)[cells].ravel()
-    topo = np.asarray(c2v.array).reshape(-1, 4)[cells].ravel()
-    coords = np.empty((mesh.topology.index_map(0).size_local
-                       + mesh.topology.index_map(0).num_ghosts, 3))  # fmt: skip
-    coords[topo] = mesh.geometry.x[geom]
-    found = []
+def _nearest_nodes(V, cells, points):
+    """Local P1 nodes (vertices) of ``cells`` nearest to each of ``points``, the nearest over
+    all ranks (a rank holding it, owned or ghost, returns it; collective)."""
+    nodes = np.unique(np.asarray(V.dofmap.list)[cells])
+    X = V.tabulate_dof_coordinates()[nodes]
+    found = [np.empty(0, dtype=nodes.dtype)]
     for point in points:
-        d = np.linalg.norm(coords[vertices] - np.asarray(point), axis=1)
-        best = float(d.min()) if d.size else np.inf
-        nearest = mesh.comm.allreduce(best, op=MPI.MIN)
-        found.extend(vertices[d <= nearest * (1 + 1e-12)].tolist() if d.size else [])
-    return np.unique(np.asarray(found, dtype=np.int32))
+        d = np.linalg.norm(X - np.asarray(point), axis=1)
+        nearest = V.mesh.comm.allreduce(float(d.min()) if d.size else np.inf, op=MPI.MIN)
+        found.append(nodes[d <= nearest])
+    return np.unique(np.concatenate(found))
 
 
 def _gather(V, rows):
@@ -271,12 +262,9 @@ def run(
         # the peer's supports: x and y of three sphere vertices (which remove the sphere's
         # horizontal rigid motions and leave the vertical one to contact)
         points = [(0.0, 0.0, RADIUS), (0.0, 0.0, RADIUS / 2), (0.0, RADIUS / 2, RADIUS / 2)]
-        pins = _nearest_vertices(mesh, cell_tags.find(hertz.SPHERE), points)
+        pins = _nearest_nodes(V, cell_tags.find(hertz.SPHERE), points)
         bcs += [
-            dolfinx.fem.dirichletbc(
-                zero, dolfinx.fem.locate_dofs_topological(V.sub(c), 0, pins), V.sub(c)
-            )
-            for c in (0, 1)
+            dolfinx.fem.dirichletbc(zero, (3 * pins + c).astype(np.int32), V.sub(c)) for c in (0, 1)
         ]
         depth = fm.material_depth(mesh)
     else:

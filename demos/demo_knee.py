@@ -378,7 +378,6 @@ def set_flexion(t: float) -> None:
         # Newton step instead
         u.x.array[:] = last["u"]
         u.x.scatter_forward()
-        last["unpredicted"] = last.get("unpredicted", 0) + 1
         report(f"    the prediction for {np.degrees(angle):.2f} deg inverts an element: starting "
                "from the last converged state")  # fmt: skip
 
