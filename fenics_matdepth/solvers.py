@@ -27,6 +27,7 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 
+from fenics_matdepth._bulk import BulkMatrix
 from fenics_matdepth._checks import CellDeterminants, collective_error
 from fenics_matdepth._compat import (
     NewtonSolverProblemBase,
@@ -35,6 +36,7 @@ from fenics_matdepth._compat import (
 )
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
+from fenics_matdepth.contact import assembly
 from fenics_matdepth.contact.operator import ContactOperator
 
 __all__ = [
@@ -314,6 +316,10 @@ class ContactAssembler:
         self.watch = _Stopwatch()
         self.cells = CellDeterminants(u.function_space)
         self.matrix = contact.create_matrix(a, self.bcs)
+        # the bulk Jacobian through DOLFINx's native CSR matrix (fenics_matdepth._bulk)
+        self.bulk = BulkMatrix(
+            a, self.bcs, assembly.global_dirichlet_dofs(self.comm, u.function_space, self.bcs)
+        )
         self.pattern_rebuilds = 0
         #: rigid-body modes set on every matrix (for an AMG preconditioner), or None
         self.near_nullspace: PETSc.NullSpace | None = None
@@ -377,7 +383,7 @@ class ContactAssembler:
         them (collective)."""
         with self.watch("bulk_assembly"):
             A.zeroEntries()
-            dolfinx.fem.petsc.assemble_matrix(A, self.a, self.bcs)
+            self.bulk.add_to(A)
             A.assemble()
         with self.watch("contact_assembly"):
             self.contact.add_jacobian(A)

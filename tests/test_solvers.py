@@ -24,6 +24,7 @@ from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth import solvers
+from fenics_matdepth._bulk import BulkMatrix
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact import assembly
 from fenics_matdepth.solvers import ContactProblem, NonlinearContactProblem, SolveResult
@@ -567,6 +568,41 @@ def test_residual_of_the_accepted_step_is_reused_and_exact():
     assert held.norm() > 0.0 and diff.norm() <= 1e-10 * held.norm()
     for vec in (held, fresh, x, diff):
         vec.destroy()
+
+
+def test_bulk_jacobian_through_dolfinx_csr_equals_dolfinx_petsc_assembly():
+    """The problems assemble the bulk Jacobian into DOLFINx's native CSR matrix and add it to
+    the contact-pattern matrix (fenics_matdepth._bulk): equal to dolfinx.fem.petsc's assembly
+    into the same matrix at a deformed state with Dirichlet rows and columns, on any number
+    of ranks (ghost rows summed into their owners)."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, _ = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    u.interpolate(lambda p: np.vstack((0.05 * p[1] * p[2], -0.03 * p[0] ** 2, 0.04 * p[0] * p[1])))
+    a = dolfinx.fem.form(ufl.derivative(residual, u, ufl.TrialFunction(V)))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
+    bulk = BulkMatrix(a, bcs, assembly.global_dirichlet_dofs(comm, V, bcs))
+    mine, theirs = contact.create_matrix(a, bcs), contact.create_matrix(a, bcs)
+    for _ in range(2):  # the second assembly starts from the first's values
+        mine.zeroEntries()
+        bulk.add_to(mine)
+        mine.assemble()
+    theirs.zeroEntries()
+    dolfinx.fem.petsc.assemble_matrix(theirs, a, bcs)
+    theirs.assemble()
+    reference = theirs.norm(PETSc.NormType.FROBENIUS)
+    assert reference > 0.0
+    mine.axpy(-1.0, theirs)
+    assert mine.norm(PETSc.NormType.FROBENIUS) <= 1e-13 * reference
+    # the Dirichlet rows hold 1 on the diagonal only
+    owned = assembly.owned_dirichlet_dofs(bcs)
+    assert comm.allreduce(owned.size) > 0
+    r0 = theirs.getOwnershipRange()[0]
+    for row in owned[:5]:
+        cols, vals = theirs.getRow(r0 + int(row))
+        assert np.array_equal(vals[vals != 0.0], [1.0]) and cols[vals != 0.0][0] == r0 + row
+    for mat in (mine, theirs):
+        mat.destroy()
 
 
 def test_line_search_start_merit_is_not_evaluated_again():
