@@ -529,6 +529,62 @@ def test_amg_default_above_the_size_threshold(monkeypatch):
     assert problem.snes.getKSP().getPC().getType() == "jacobi"
 
 
+def _record_amg_setups(problem, record: list) -> None:
+    """A KSP monitor appending, at each linear solve's start, whether GAMG built its
+    hierarchy anew for it (the coarsest operator, a Galerkin product, changed): counted apart
+    from the problem's own counters."""
+    pc = problem.snes.getKSP().getPC()
+    last = [None]
+
+    def monitor(ksp, its, rnorm):
+        if its == 0:
+            coarse = pc.getMGCoarseSolve().getOperators()[0]
+            state = (coarse.handle, coarse.stateGet())
+            record.append(state != last[0])
+            last[0] = state
+
+    problem.snes.getKSP().setMonitor(monitor)
+
+
+def test_amg_keeps_its_hierarchy_while_gmres_stays_fast(monkeypatch):
+    """The default AMG preconditioner keeps its hierarchy across Newton iterations as the
+    direct solver keeps its factorisation: fewer GAMG set-ups than iterations (none in a solve
+    that starts on the last solve's hierarchy), the solution of a set-up per iteration. With
+    AMG_KEPT_GROWTH 0 every GMRES needs more iterations than the rule allows, and every
+    Jacobian gets a new hierarchy."""
+    comm = MPI.COMM_WORLD
+    monkeypatch.setattr(solvers, "AMG_MIN_DOFS", 0)
+    runs, mesh = {}, None
+    for name, keep, growth in (("kept", True, 2.0), ("every", False, 2.0), ("zero", True, 0.0)):
+        monkeypatch.setattr(solvers, "AMG_KEPT_GROWTH", growth)
+        mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
+        bcs, push = _press_bcs(mesh, V, 0.9, -0.02)
+        contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+        results = []
+        with ContactProblem(
+            residual, u, contact, bcs=bcs, energy=energy, keep_factorisation=keep
+        ) as problem:
+            assert problem.snes.getKSP().getPC().getType() == "gamg"
+            setups = []
+            _record_amg_setups(problem, setups)
+            for depth in (-0.02, -0.03):
+                push.x.array.reshape(-1, 3)[:, 2] = depth
+                del setups[:]
+                result = problem.solve()
+                assert result.converged
+                results.append((result.iterations, result.factorisations, sum(setups)))
+        runs[name] = (results, u)
+    for iterations, counted, setups in runs["kept"][0]:
+        assert counted == setups < iterations
+    # the first solve builds a hierarchy; the second starts on the one the first ended with
+    assert runs["kept"][0][0][2] > 0
+    for iterations, counted, setups in runs["every"][0]:
+        assert counted == 0 and setups == iterations
+    for iterations, counted, setups in runs["zero"][0]:
+        assert counted == setups == iterations
+    assert _relative_difference(runs["kept"][1], runs["every"][1]) <= 1e-7
+
+
 def test_linear_solve_time_includes_the_factorisation():
     """The reported linear-solve time covers the factorisation (PETSc's PCSetUp event, which
     its KSPSolve event leaves out) as well as the solve."""
