@@ -649,7 +649,10 @@ class ContactProblem(_Releasable):
         } & set(user)  # fmt: skip
         dofmap = u.function_space.dofmap
         num_dofs = dofmap.index_map.size_global * dofmap.index_map_bs
-        if num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user):
+        # the default AMG preconditioner (_AMG_OPTIONS), which keeps its hierarchy like the
+        # direct solver its factorisation (AMG_KEPT_GROWTH)
+        self._amg = num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user)
+        if self._amg:
             options.update(_AMG_OPTIONS)
             del options["pc_factor_mat_solver_type"]
         elif "pc_type" not in user:  # LDL^T or LU, chosen per Jacobian (choose_factorisation)
@@ -677,9 +680,7 @@ class ContactProblem(_Releasable):
         ksp.setFromOptions()
         # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
         self._choose_factorisation = "pc_type" not in user and _is_mumps_direct(ksp.getPC())
-        # the default AMG preconditioner (_AMG_OPTIONS), which keeps its hierarchy like the
-        # direct solver its factorisation (AMG_KEPT_GROWTH)
-        self._amg = not {"ksp_type", "pc_type"} & set(user) and ksp.getPC().getType() == "gamg"
+        self._amg = self._amg and ksp.getPC().getType() == "gamg"  # (PETSC_OPTIONS may differ)
         # the direct solver keeps its factorisation (_KEPT_FACTORISATION_OPTIONS)
         self._keep_factorisation = keep_factorisation and (self._choose_factorisation or self._amg)
         # GMRES iterations of the last solve on a new AMG hierarchy
