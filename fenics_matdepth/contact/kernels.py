@@ -70,19 +70,18 @@ def _area_work():
         np.empty(12, dtype=FLOAT),  # 7 d Phi / d Lam
         np.empty((12, 12), dtype=FLOAT),  # 8 d2 Phi / d Lam2
         np.empty((_NV, 6), dtype=np.int64),  # 9 Lam index of the live columns of 5
-        np.empty((9, 9), dtype=FLOAT),  # 10 edge Hessian
-        np.empty((4, _NV, 3, 3), dtype=FLOAT),  # 11 Hessian blocks over (mu_k, G)
-        np.empty((9, 9), dtype=FLOAT),  # 12 T: Hessian of Phi w.r.t. triangle vertices
-        np.empty((9, 21), dtype=FLOAT),  # 13 V: half-contracted Hessian
-        np.empty((12, 9), dtype=FLOAT),  # 14 U
-        np.empty(21, dtype=FLOAT),  # 15 d Phi / d x
-        np.empty(9, dtype=FLOAT),  # 16 d A / d x
-        np.empty((9, 9), dtype=FLOAT),  # 17 d2 A / d x2
-        np.empty((3, 3), dtype=FLOAT),  # 18 W[i] = sum_j dPhi/dLam_ij grad lambda_j
-        np.empty((9, 3), dtype=FLOAT),  # 19 dn[3 i + a] = d (triangle normal) / d x_ia
-        np.empty(_NV, dtype=np.int64),  # 20 number of live columns per vertex
-        np.empty((5, 9), dtype=FLOAT),  # 21 gradients of the edge integrand's factors
-        np.empty((3, 9), dtype=FLOAT),  # 22 d (clip shift) / d x_tri
+        np.empty((4, _NV, 3, 3), dtype=FLOAT),  # 10 Hessian blocks over (mu_k, G)
+        np.empty((9, 9), dtype=FLOAT),  # 11 T: Hessian of Phi w.r.t. triangle vertices
+        np.empty((9, 21), dtype=FLOAT),  # 12 V: half-contracted Hessian
+        np.empty((12, 9), dtype=FLOAT),  # 13 U
+        np.empty(21, dtype=FLOAT),  # 14 d Phi / d x
+        np.empty(9, dtype=FLOAT),  # 15 d A / d x
+        np.empty((9, 9), dtype=FLOAT),  # 16 d2 A / d x2
+        np.empty((3, 3), dtype=FLOAT),  # 17 W[i] = sum_j dPhi/dLam_ij grad lambda_j
+        np.empty((9, 3), dtype=FLOAT),  # 18 dn[3 i + a] = d (triangle normal) / d x_ia
+        np.empty(_NV, dtype=np.int64),  # 19 number of live columns per vertex
+        np.empty((3, 9), dtype=FLOAT),  # 20 vectors of an edge integrand's Hessian; scratch
+        np.empty((3, 9), dtype=FLOAT),  # 21 d (clip shift) / d x_tri
     )
 
 
@@ -237,10 +236,15 @@ def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
 # not inlined into `_area_pair` either: it runs once per pair when the Hessian is wanted, and
 # compiling it on its own shortens the first run's compilation further
 @njit(cache=True)
-def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi):
+def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi, cg):
     """``hphi += J^T B J + sum_k w_k . d2 mu_k``: the Hessian blocks over (mu_0.., G) pulled
     back to Lam through the sparse vertex Jacobians (at most 6 live columns each) and
-    ``d G_i / d Lam_ij = d_j``."""
+    ``d G_i / d Lam_ij = d_j``. ``cg`` (12, >= 3) is scratch: the (mu, G) blocks pulled back
+    on the mu side are summed there over the vertices and multiplied by ``d`` once."""
+    for r in range(12):
+        cg[r, 0] = 0.0
+        cg[r, 1] = 0.0
+        cg[r, 2] = 0.0
     for k in range(n):
         s, nc = _vertex_jacobian(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], jmu[k], jidx[k])
         ncol[k] = nc
@@ -272,13 +276,16 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
                 val = u0 * jmu[k1, 0, b] + u1 * jmu[k1, 1, b] + u2 * jmu[k1, 2, b]
                 hphi[ia, jidx[k1, b]] += val
                 hphi[jidx[k1, b], ia] += val
-            for j in range(4):
-                hphi[ia, j] += c0 * dt[j]
-                hphi[j, ia] += c0 * dt[j]
-                hphi[ia, 4 + j] += c1 * dt[j]
-                hphi[4 + j, ia] += c1 * dt[j]
-                hphi[ia, 8 + j] += c2 * dt[j]
-                hphi[8 + j, ia] += c2 * dt[j]
+            cg[ia, 0] += c0
+            cg[ia, 1] += c1
+            cg[ia, 2] += c2
+    for r in range(12):
+        for i in range(3):
+            ci = cg[r, i]
+            if ci != 0.0:
+                for j in range(4):
+                    hphi[r, 4 * i + j] += ci * dt[j]
+                    hphi[4 * i + j, r] += ci * dt[j]
     for i in range(3):
         for i2 in range(3):
             bg = blk[3, 0, i, i2]
@@ -430,7 +437,6 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         gphi,
         hphi,
         jidx,
-        hf,
         blk,
         tt,
         vv,
@@ -513,62 +519,55 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         wg2 += dd * (qb * p2 + qc * q2)
         if not want_hess:
             continue
-        # Hessian of f over z = (p, q, G): Q hD + dD gQ^T + gQ dD^T + D (sum Qxy gx gy^T + ...)
-        # rows of zv over z: grad dd, grad qq, grad vb, grad vc, grad (va + vb + vc); grad va = e_6
+        # Hessian of f = dd qq over z = (p, q, G), block by block (dd bilinear in p and q, qq
+        # quadratic in (va, vb, vc) = (G_0, G . p, G . q) with Hessian I + 1 1^T):
+        #   d2f/dp2 = qb (dp G^T + G dp^T) + 2 dd G G^T, the same in q with (qc, dq),
+        #   d2f/dp dq = qq D + qc dp G^T + qb G dq^T + dd G G^T (D: d2 dd / dp dq),
+        #   d2f/dp dG = dp gG^T + dd (G (2 p + q + e_0)^T + qb I), the same in q,
+        #   d2f/dG2 = dd (p p^T + q q^T + s s^T + e_0 e_0^T), s = p + q + e_0,
+        # with dp = d dd / dp, dq = d dd / dq and gG = d qq / dG
+        zv[0, 0] = g0
+        zv[0, 1] = g1
+        zv[0, 2] = g2
+        zv[0, 3] = 0.0  # dp
+        zv[0, 4] = q2 / 12.0
+        zv[0, 5] = -q1 / 12.0
+        zv[0, 6] = 0.0  # dq
+        zv[0, 7] = -p2 / 12.0
+        zv[0, 8] = p1 / 12.0
+        zv[1, 0] = qa + qb * p0 + qc * q0  # gG
+        zv[1, 1] = qb * p1 + qc * q1
+        zv[1, 2] = qb * p2 + qc * q2
+        zv[1, 3] = 2.0 * p0 + q0 + 1.0  # 2 p + q + e_0
+        zv[1, 4] = 2.0 * p1 + q1
+        zv[1, 5] = 2.0 * p2 + q2
+        zv[1, 6] = 2.0 * q0 + p0 + 1.0  # 2 q + p + e_0
+        zv[1, 7] = 2.0 * q1 + p1
+        zv[1, 8] = 2.0 * q2 + p2
+        zv[2, 0] = p0 + q0 + 1.0  # s
+        zv[2, 1] = p1 + q1
+        zv[2, 2] = p2 + q2
         for r in range(3):
-            zv[0, r] = 0.0
-            zv[0, 3 + r] = 0.0
-            zv[2, r] = g0 if r == 0 else (g1 if r == 1 else g2)
-            zv[2, 3 + r] = 0.0
-            zv[3, r] = 0.0
-            zv[3, 3 + r] = zv[2, r]
-            zv[4, r] = zv[2, r]
-            zv[4, 3 + r] = zv[2, r]
-            zv[1, r] = qb * zv[2, r]
-            zv[1, 3 + r] = qc * zv[2, r]
-            zv[0, 6 + r] = 0.0
-            zv[2, 6 + r] = mu[0, k, r]
-            zv[3, 6 + r] = mu[0, k1, r]
-            zv[4, 6 + r] = mu[0, k, r] + mu[0, k1, r]
-            zv[1, 6 + r] = qb * mu[0, k, r] + qc * mu[0, k1, r]
-        zv[0, 1] = q2 / 12.0
-        zv[0, 2] = -q1 / 12.0
-        zv[0, 4] = -p2 / 12.0
-        zv[0, 5] = p1 / 12.0
-        zv[1, 6] += qa
-        zv[4, 6] += 1.0
-        for r in range(9):
-            d0 = zv[0, r]
-            d1 = zv[1, r]
-            d2 = zv[2, r]
-            d3 = zv[3, r]
-            d4 = zv[4, r]
-            for c in range(r, 9):
-                # qq has the Hessian I + 1 1^T in (va, vb, vc)
-                val = d0 * zv[1, c] + d1 * zv[0, c]
-                val += dd * (d2 * zv[2, c] + d3 * zv[3, c] + d4 * zv[4, c])
-                hf[r, c] = val
-                hf[c, r] = val
-        hf[6, 6] += dd
-        # vb = G . p and vc = G . q are bilinear
-        for r in range(3):
-            hf[r, 6 + r] += dd * qb
-            hf[6 + r, r] += dd * qb
-            hf[3 + r, 6 + r] += dd * qc
-            hf[6 + r, 3 + r] += dd * qc
-        # dd is bilinear in (p1, p2, q1, q2)
-        hf[1, 5] += qq / 12.0
-        hf[5, 1] += qq / 12.0
-        hf[2, 4] -= qq / 12.0
-        hf[4, 2] -= qq / 12.0
-        for r in range(3):
+            gr = zv[0, r]
+            dpr = zv[0, 3 + r]
+            dqr = zv[0, 6 + r]
+            pr = mu[0, k, r]
+            qr = mu[0, k1, r]
+            sr = zv[2, r]
             for c in range(3):
-                blk[0, k, r, c] += hf[r, c]
-                blk[0, k1, r, c] += hf[3 + r, 3 + c]
-                blk[1, k, r, c] += hf[r, 3 + c]
-                blk[2, k, r, c] += hf[r, 6 + c]
-                blk[2, k1, r, c] += hf[3 + r, 6 + c]
-                blk[3, 0, r, c] += hf[6 + r, 6 + c]
+                gc = zv[0, c]
+                ggd = dd * gr * gc
+                blk[0, k, r, c] += qb * (dpr * gc + gr * zv[0, 3 + c]) + 2.0 * ggd
+                blk[0, k1, r, c] += qc * (dqr * gc + gr * zv[0, 6 + c]) + 2.0 * ggd
+                blk[1, k, r, c] += qc * dpr * gc + qb * gr * zv[0, 6 + c] + ggd
+                blk[2, k, r, c] += dpr * zv[1, c] + dd * gr * zv[1, 3 + c]
+                blk[2, k1, r, c] += dqr * zv[1, c] + dd * gr * zv[1, 6 + c]
+                blk[3, 0, r, c] += dd * (pr * mu[0, k, c] + qr * mu[0, k1, c] + sr * zv[2, c])
+            blk[2, k, r, r] += dd * qb
+            blk[2, k1, r, r] += dd * qc
+        blk[3, 0, 0, 0] += dd
+        blk[1, k, 1, 2] += qq / 12.0
+        blk[1, k, 2, 1] -= qq / 12.0
 
     energy = penalty * area * phi
     if not want_grad:
@@ -581,7 +580,7 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     for k in range(n):
         _vertex_gradient(lam, mu[0, k], vlab[0, k, 0], vlab[0, k, 1], wmu[k], gphi)
     if want_hess:
-        _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi)
+        _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi, uu)
 
     # ---- chain rule through Lam(x): d Lam_ij / d x_i = grad_j, d Lam_ij / d X_k = -Lam_ik grad_j
     for i in range(3):
