@@ -626,6 +626,32 @@ def test_residual_of_the_accepted_step_is_reused_and_exact():
         vec.destroy()
 
 
+def test_owned_dirichlet_dofs_are_owned_once():
+    """`assembly.owned_dirichlet_dofs` returns each rank's owned Dirichlet dofs only: every dof
+    of the conditions is owned by exactly one rank, and together they are
+    `global_dirichlet_dofs` (ghosts included), on any number of ranks; for conditions on the
+    blocked space (one on every dof, so that on 2 ranks the ghosts are Dirichlet dofs
+    whatever the partition) and on a subspace."""
+    comm = MPI.COMM_WORLD
+    mesh, V, _, _, _ = _stacked_blocks(comm)
+    press, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    side = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], 0.0))
+    V1, _ = V.sub(1).collapse()
+    dofs = dolfinx.fem.locate_dofs_topological((V.sub(1), V1), 2, side)
+    sub = dolfinx.fem.dirichletbc(dolfinx.fem.Function(V1), dofs, V.sub(1))
+    every_dof = dolfinx.fem.locate_dofs_geometrical(V, lambda x: np.full(x.shape[1], True))
+    everything = dolfinx.fem.dirichletbc(dolfinx.fem.Function(V), every_dof)
+    imap = V.dofmap.index_map
+    for bcs in (press + [sub], [everything]):
+        owned = assembly.owned_dirichlet_dofs(bcs)
+        assert np.all(owned < 3 * imap.size_local)
+        glob = 3 * imap.local_to_global(owned // 3).astype(np.int64) + owned % 3
+        listed = np.concatenate(comm.allgather(glob))
+        assert listed.size == np.unique(listed).size  # no dof listed by two ranks
+        assert np.array_equal(np.sort(listed), assembly.global_dirichlet_dofs(comm, V, bcs))
+    assert listed.size == 3 * imap.size_global
+
+
 def test_bulk_jacobian_through_dolfinx_csr_equals_dolfinx_petsc_assembly():
     """The problems assemble the bulk Jacobian into DOLFINx's native CSR matrix and add it to
     the contact-pattern matrix (fenics_matdepth._bulk): equal to dolfinx.fem.petsc's assembly
@@ -650,7 +676,8 @@ def test_bulk_jacobian_through_dolfinx_csr_equals_dolfinx_petsc_assembly():
     owned = assembly.owned_dirichlet_dofs(bcs)
     assert comm.allreduce(owned.size) > 0
     r0, r1 = mine.getOwnershipRange()
-    for row in owned[owned < r1 - r0]:  # (the list can hold ghost dofs on 2 ranks)
+    assert np.all(owned < r1 - r0)
+    for row in owned:
         cols, vals = mine.getRow(r0 + int(row))
         assert np.array_equal(vals[vals != 0.0], [1.0]) and cols[vals != 0.0][0] == r0 + row
     reference = theirs.norm(PETSc.NormType.FROBENIUS)
