@@ -364,27 +364,6 @@ def _shift_rows(g, ds):
         g[c] += g0 * ds[0, c] + g1 * ds[1, c] + g2 * ds[2, c]
 
 
-@njit(cache=True)
-def _shift_hessian(hess, p, ds, tmp):
-    """``hess[p] <- P^T hess[p] P`` with P = T on the 9 triangle coordinates, I elsewhere."""
-    for r in range(21):  # columns: H P
-        s0 = hess[p, r, 0] + hess[p, r, 3] + hess[p, r, 6]
-        s1 = hess[p, r, 1] + hess[p, r, 4] + hess[p, r, 7]
-        s2 = hess[p, r, 2] + hess[p, r, 5] + hess[p, r, 8]
-        for c in range(9):
-            tmp[0, c] = s0 * ds[0, c] + s1 * ds[1, c] + s2 * ds[2, c]
-        for c in range(9):
-            hess[p, r, c] += tmp[0, c]
-    for c in range(21):  # rows: P^T (H P)
-        s0 = hess[p, 0, c] + hess[p, 3, c] + hess[p, 6, c]
-        s1 = hess[p, 1, c] + hess[p, 4, c] + hess[p, 7, c]
-        s2 = hess[p, 2, c] + hess[p, 5, c] + hess[p, 8, c]
-        for r in range(9):
-            tmp[0, r] = s0 * ds[0, r] + s1 * ds[1, r] + s2 * ds[2, r]
-        for r in range(9):
-            hess[p, r, c] += tmp[0, r]
-
-
 # A function of its own, called from the pair loops, not inlined there (inline="always"):
 # numba's IR inlining of this large kernel made the first run's compilation about three
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up). The same holds
@@ -639,25 +618,30 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     if not want_hess:
         return energy
 
-    # d2 A: (dn . dn + n . d2n) / (2|n|) - (n . dn)^2 / (2 |n|^3)
-    for r in range(9):
-        i = r // 3
-        a = r % 3
-        for c in range(9):
-            m = c // 3
-            b = c % 3
-            val = dn[r, 0] * dn[c, 0] + dn[r, 1] * dn[c, 1] + dn[r, 2] * dn[c, 2]
-            if m != i:
-                # d E_i / d x_m = +1 if m = i - 1, -1 if m = i + 1; n . (e_b x e_a)
-                sgn = 1.0 if m == (i + 2) % 3 else -1.0
-                if a != b:
-                    t = 3 - a - b
-                    lc = 1.0 if (a - b) % 3 == 1 else -1.0  # levi-civita(b, a, t)
-                    nt = nx if t == 0 else (ny if t == 1 else nz)
-                    val += sgn * lc * nt
-            ha[r, c] = 0.5 * val * inv_n - 2.0 * ga[r] * ga[c] * inv_n
+    # d2 A: (dn . dn + n . d2n) / (2|n|) - (n . dn)^2 / (2 |n|^3); d E_i / d x_m = +1 if
+    # m = i - 1, -1 if m = i + 1, and n . (e_b x e_a) = zv[a, b] (the cross-product matrix of n)
+    zv[0, 0] = 0.0
+    zv[0, 1] = -nz
+    zv[0, 2] = ny
+    zv[1, 0] = nz
+    zv[1, 1] = 0.0
+    zv[1, 2] = -nx
+    zv[2, 0] = -ny
+    zv[2, 1] = nx
+    zv[2, 2] = 0.0
+    for i in range(3):
+        for m in range(3):
+            sgn = 0.0 if m == i else (1.0 if m == (i + 2) % 3 else -1.0)
+            for a in range(3):
+                r = 3 * i + a
+                for b in range(3):
+                    c = 3 * m + b
+                    val = dn[r, 0] * dn[c, 0] + dn[r, 1] * dn[c, 1] + dn[r, 2] * dn[c, 2]
+                    ha[r, c] = (0.5 * (val + sgn * zv[a, b]) - 2.0 * ga[r] * ga[c]) * inv_n
 
-    # J^T H_Lam J with J_(ij) = p_i (x) grad_j, p_i = (e_i, -Lam[i, :]) over the 7 vertices
+    # J^T H_Lam J with J_(ij) = p_i (x) grad_j, p_i = (e_i, -Lam[i, :]) over the 7 vertices:
+    # tt = (I (x) grads^T) H_Lam (I (x) grads) over the triangle corners is the triangle block;
+    # the tetrahedron's rows and columns are -sum_i Lam[i, k] times the corners'
     for r in range(12):
         for i2 in range(3):
             for b in range(3):
@@ -672,59 +656,73 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
                 for j in range(4):
                     acc += grads[j, a] * uu[4 * i + j, c]
                 tt[3 * i + a, c] = acc
+    # vv[:, 3 k + b] (9 x 12): the triangle-tetrahedron block without the second derivatives
     for r in range(9):
-        for be in range(7):
-            for b in range(3):
-                if be < 3:
-                    val = tt[r, 3 * be + b]
-                else:
-                    k = be - 3
-                    val = -(
-                        lam[0, k] * tt[r, b] + lam[1, k] * tt[r, 3 + b] + lam[2, k] * tt[r, 6 + b]
-                    )
-                vv[r, 3 * be + b] = val
-    for al in range(7):
-        for a in range(3):
-            for c in range(21):
-                if al < 3:
-                    val = vv[3 * al + a, c]
-                else:
-                    k = al - 3
-                    val = -(
-                        lam[0, k] * vv[a, c] + lam[1, k] * vv[3 + a, c] + lam[2, k] * vv[6 + a, c]
-                    )
-                hess[p, 3 * al + a, c] = val
-    # sum_ij dPhi/dLam_ij d2 Lam_ij: triangle-tet and tet-tet blocks
-    for i in range(3):
         for k in range(4):
-            for a in range(3):
+            for b in range(3):
+                vv[r, 3 * k + b] = -(
+                    lam[0, k] * tt[r, b] + lam[1, k] * tt[r, 3 + b] + lam[2, k] * tt[r, 6 + b]
+                )
+    # the blocks of H_Phi over x, upper block triangle only (mirrored in the product rule):
+    # triangle-tetrahedron, with sum_ij dPhi/dLam_ij d2 Lam_ij = -grads[k, a] ww[i, b]
+    for i in range(3):
+        for a in range(3):
+            r = 3 * i + a
+            for k in range(4):
                 for b in range(3):
-                    val = -grads[k, a] * ww[i, b]
-                    hess[p, 3 * i + a, 9 + 3 * k + b] += val
-                    hess[p, 9 + 3 * k + b, 3 * i + a] += val
-    # tet-tet: sum_i (lam_il ww_ia grads_kb + lam_ik grads_la ww_ib), where the tetrahedron
-    # part of gx holds -sum_i lam_ik ww_ia
+                    hess[p, r, 9 + 3 * k + b] = vv[r, 3 * k + b] - grads[k, a] * ww[i, b]
+    # tetrahedron-tetrahedron, with sum_i (lam_il ww_ia grads_kb + lam_ik grads_la ww_ib), where
+    # the tetrahedron part of gx holds -sum_i lam_ik ww_ia
     for k in range(4):
-        for l in range(4):
+        for l in range(k, 4):
             for a in range(3):
                 for b in range(3):
-                    hess[p, 9 + 3 * k + a, 9 + 3 * l + b] -= (
-                        gx[9 + 3 * l + a] * grads[k, b] + gx[9 + 3 * k + b] * grads[l, a]
-                    )
-    # the clip shift: T^T H T on the triangle rows and columns (the second derivatives of the
-    # shift, of relative size CLIP_SHIFT, are left out)
-    _shift_hessian(hess, p, ds, zv)
-    # E = eps (A Phi): product rule
-    for r in range(21):
-        for c in range(21):
-            val = area * hess[p, r, c]
-            if r < 9:
-                val += ga[r] * gx[c]
-                if c < 9:
-                    val += phi * ha[r, c]
-            if c < 9:
-                val += gx[r] * ga[c]
+                    hess[p, 9 + 3 * k + a, 9 + 3 * l + b] = -(
+                        lam[0, k] * vv[a, 3 * l + b]
+                        + lam[1, k] * vv[3 + a, 3 * l + b]
+                        + lam[2, k] * vv[6 + a, 3 * l + b]
+                    ) - (gx[9 + 3 * l + a] * grads[k, b] + gx[9 + 3 * k + b] * grads[l, a])
+    # the clip shift: T^T H T on the triangle rows and columns, T = I + [ds; ds; ds] (the
+    # second derivatives of the shift, of relative size CLIP_SHIFT, are left out): the
+    # triangle block from both sides, the triangle-tetrahedron block from the left
+    for r in range(9):  # tt T
+        s0 = tt[r, 0] + tt[r, 3] + tt[r, 6]
+        s1 = tt[r, 1] + tt[r, 4] + tt[r, 7]
+        s2 = tt[r, 2] + tt[r, 5] + tt[r, 8]
+        for c in range(9):
+            zv[0, c] = s0 * ds[0, c] + s1 * ds[1, c] + s2 * ds[2, c]
+        for c in range(9):
+            tt[r, c] += zv[0, c]
+    for c in range(9):  # T^T (tt T)
+        s0 = tt[0, c] + tt[3, c] + tt[6, c]
+        s1 = tt[1, c] + tt[4, c] + tt[7, c]
+        s2 = tt[2, c] + tt[5, c] + tt[8, c]
+        for r in range(9):
+            tt[r, c] += s0 * ds[0, r] + s1 * ds[1, r] + s2 * ds[2, r]
+    for c in range(9, 21):
+        s0 = hess[p, 0, c] + hess[p, 3, c] + hess[p, 6, c]
+        s1 = hess[p, 1, c] + hess[p, 4, c] + hess[p, 7, c]
+        s2 = hess[p, 2, c] + hess[p, 5, c] + hess[p, 8, c]
+        for r in range(9):
+            hess[p, r, c] += s0 * ds[0, r] + s1 * ds[1, r] + s2 * ds[2, r]
+    # E = eps (A Phi): product rule, each block written with its mirror image
+    for r in range(9):
+        for c in range(9):
+            val = area * tt[r, c] + ga[r] * gx[c] + gx[r] * ga[c] + phi * ha[r, c]
             hess[p, r, c] = penalty * val
+        for c in range(9, 21):
+            val = penalty * (area * hess[p, r, c] + ga[r] * gx[c])
+            hess[p, r, c] = val
+            hess[p, c, r] = val
+    scale = penalty * area
+    for k in range(4):
+        for l in range(k, 4):
+            for a in range(3):
+                for b in range(3):
+                    val = scale * hess[p, 9 + 3 * k + a, 9 + 3 * l + b]
+                    hess[p, 9 + 3 * k + a, 9 + 3 * l + b] = val
+                    if l > k:
+                        hess[p, 9 + 3 * l + b, 9 + 3 * k + a] = val
     return energy
 
 
