@@ -629,9 +629,15 @@ def gathered_grid():
     return grid
 
 
+def add_title(plotter, text: str) -> None:
+    """A subplot's title at its upper left, in one size: pyvista's corner text shrinks a long
+    title, so that the two panels of a picture had titles of different sizes."""
+    plotter.add_text(text, position=(0.01, 0.955), viewport=True, font_size=10)
+
+
 def skin_view(plotter, grid, title: str) -> None:
     plotter.add_mesh(grid.extract_surface(), color="#e8b89a", smooth_shading=True)
-    plotter.add_text(title, font_size=10)
+    add_title(plotter, title)
     plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
     plotter.camera.zoom(1.1)
 
@@ -876,6 +882,58 @@ report(
 # path over the femur, a cut-away at the last state coloured by material depth (Fig. 20
 # right), a close-up of the fold behind the knee (Figs. 21-22), and the animation.
 
+# The bodies in matplotlib's tab10 colours without its purple (one colour a body, named in the
+# key), the depth in bands of a round width; the keys stand in narrow columns beside the two
+# panels of a picture, where they cover none of the mesh.
+
+# +
+BODY_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#8c564b", "#e377c2", "#7f7f7f",
+                "#bcbd22", "#17becf"]  # fmt: skip
+by_body = {
+    "scalars": "body",
+    "cmap": BODY_COLOURS,
+    "clim": [0.5, len(leg.BODIES) + 0.5],
+    "n_colors": len(leg.BODIES),
+    "annotations": {float(tag): name.replace("_", " ") for tag, name in leg.BODIES.items()},
+    "show_scalar_bar": False,
+}
+
+
+def by_depth(grid) -> dict:
+    """Material depth in 5 to 12 bands of 1, 2 or 5 times a power of ten mm, from 0 to the
+    first band edge above the largest depth in ``grid``: the key's labels are round numbers."""
+    largest = max(float(grid.point_data["material depth (mm)"].max()), 1e-3)
+    width = next(w for w in (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0) if largest / w <= 12)
+    bands = int(np.ceil(largest / width - 1e-9))
+    return {"scalars": "material depth (mm)", "cmap": "viridis", "n_colors": bands,
+            "clim": [0.0, bands * width], "show_scalar_bar": False}  # fmt: skip
+
+
+def keyed_plotter():
+    """Two panels (columns 1 and 2) with a column for a colour key on either side."""
+    return pv.Plotter(
+        shape=(1, 4), col_weights=[1, 3, 3, 1], window_size=(1560, 640), off_screen=True
+    )
+
+
+def add_key(plotter, column: int, actor, title: str) -> None:
+    """The colour key of ``actor`` (a mesh coloured by body or by depth) in ``column``: the
+    bodies by name, the depth bands with a label at every edge."""
+    plotter.subplot(0, column)
+    lookup = actor.mapper.lookup_table
+    named = lookup.GetNumberOfAnnotatedValues() > 0
+    bar = plotter.add_scalar_bar(
+        title, mapper=actor.mapper, vertical=True, position_x=0.06 if named else 0.35,
+        position_y=0.1, width=0.15, height=0.75, title_font_size=16, label_font_size=14,
+        fmt="%g", n_labels=0 if named else lookup.n_values + 1,
+    )  # fmt: skip
+    bar.SetVerticalTitleSeparation(10)  # else the title touches the top label
+    if named:  # the names to the right of the bar, where VTK puts the tick labels
+        bar.SetTextPositionToPrecedeScalarBar()
+
+
+# -
+
 # +
 bent = gathered_grid()
 touching = fold_touching()
@@ -915,17 +973,18 @@ if comm.rank == 0 and pv is not None and bent is not None:
     centres = bent.copy()
     centres.points = bent.point_data["reference"]
     half = bent.extract_cells(np.flatnonzero(centres.cell_centers().points[:, 0] < 0.0))
-    scale = "material depth (mm)"
-    plotter = pv.Plotter(shape=(1, 2), window_size=(1200, 640), off_screen=True)
-    plotter.subplot(0, 0)
-    plotter.add_mesh(half, scalars=scale, cmap="viridis", n_colors=12)
-    plotter.add_text(f"cut-away at {reached:.0f} deg: material depth", font_size=10)
-    plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    plotter = keyed_plotter()
     plotter.subplot(0, 1)
-    plotter.add_mesh(half, scalars="body", cmap="tab10", clim=[1, 9], show_edges=True)
-    plotter.add_text("bodies", font_size=10)
+    depth_actor = plotter.add_mesh(half, **by_depth(half))
+    add_title(plotter, f"cut-away at {reached:.0f} deg: material depth")
     plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
-    plotter.link_views()
+    plotter.subplot(0, 2)
+    body_actor = plotter.add_mesh(half, show_edges=True, **by_body)
+    add_title(plotter, "bodies")
+    plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    plotter.link_views(views=[1, 2])
+    add_key(plotter, 0, depth_actor, "material\ndepth (mm)")
+    add_key(plotter, 3, body_actor, "body")
     plotter.screenshot(output / "knee_cutaway.png")
     plotter.close()
 
@@ -939,24 +998,19 @@ if comm.rank == 0 and pv is not None and bent is not None:
     touching = touching[np.abs(touching[:, 0]) < 6.0].copy()
     touching[:, 0] = fold.bounds[1] + 1.0  # in front of the cut
     print(f"the fold's skin vertices in self-contact within 6 mm of the cut: {len(touching)}")
-    plotter = pv.Plotter(shape=(1, 2), window_size=(1200, 640), off_screen=True)
+    plotter = keyed_plotter()
+    actors = []
     for i, (look, title) in enumerate(
         (
-            (
-                {"scalars": "body", "cmap": "tab10", "clim": [1, 9]},
-                f"the fold behind the knee at {reached:.0f} deg: bodies",
-            ),
-            (
-                {"scalars": scale, "cmap": "viridis", "n_colors": 12},
-                "material depth; red: skin in self-contact",
-            ),
+            (by_body, f"the fold behind the knee at {reached:.0f} deg: bodies"),
+            (by_depth(fold), "material depth; red: skin in self-contact"),
         )
     ):
-        plotter.subplot(0, i)
-        plotter.add_mesh(fold, show_edges=True, **look)
+        plotter.subplot(0, i + 1)
+        actors.append(plotter.add_mesh(fold, show_edges=True, **look))
         if len(touching):
             plotter.add_points(touching, color="red", point_size=9, render_points_as_spheres=True)
-        plotter.add_text(title, font_size=10)
+        add_title(plotter, title)
         plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
         if len(touching):  # centred on the fold's contact, from as far as the whole cut
             camera = plotter.camera
@@ -964,11 +1018,12 @@ if comm.rank == 0 and pv is not None and bent is not None:
             camera.focal_point = tuple(touching.mean(axis=0))
             camera.position = tuple(touching.mean(axis=0) + offset)
             plotter.renderer.reset_camera_clipping_range()
-        plotter.camera.zoom(1.4)
-    plotter.link_views()
+        plotter.camera.zoom(1.2)  # close, with the femur's end below it still in the frame
+    plotter.link_views(views=[1, 2])
+    add_key(plotter, 0, actors[0], "body")
+    add_key(plotter, 3, actors[1], "material\ndepth (mm)")
     plotter.screenshot(output / "knee_fold.png")
     plotter.close()
-
     for name in ("knee_skin.png", "knee_patella_path.png", "knee_cutaway.png", "knee_fold.png"):
         show_image(output / name)
     if frames:
