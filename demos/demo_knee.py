@@ -944,6 +944,10 @@ if comm.rank == 0 and pv is not None and bent is not None:
     plotter.subplot(0, 1)
     skin_view(plotter, bent, f"flexed {reached:.0f} deg")
     plotter.link_views()
+    # one camera that takes in both legs: fitted to the straight leg alone, it cut off the
+    # shank folded back past the thigh
+    plotter.reset_camera(bounds=pv.PolyData(np.vstack([straight.points, bent.points])).bounds)
+    plotter.camera.zoom(1.1)
     plotter.screenshot(output / "knee_skin.png")
     plotter.close()
 
