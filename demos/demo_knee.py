@@ -958,7 +958,7 @@ if comm.rank == 0 and pv is not None and bent is not None:
     patella0 = straight.extract_cells(np.flatnonzero(straight.cell_data["body"] == leg.PATELLA))
     plotter = pv.Plotter(shape=(1, 2), window_size=(1200, 640), off_screen=True)
     for i, (view, title) in enumerate(
-        (((1.0, 0.0, 0.0), "patella path, from the side"), ((0.0, 1.0, 0.0), "from the front"))
+        (((1.0, 0.0, 0.0), "from the side"), ((0.0, 1.0, 0.0), "from the front"))
     ):
         plotter.subplot(0, i)
         plotter.add_mesh(femur.extract_surface(), color="ivory", smooth_shading=True)
@@ -967,9 +967,20 @@ if comm.rank == 0 and pv is not None and bent is not None:
         if len(path) > 1:
             plotter.add_mesh(pv.lines_from_points(path), color="red", line_width=4)
         plotter.add_points(path, color="red", point_size=8, render_points_as_spheres=True)
-        plotter.add_text(title, font_size=10)
+        add_title(plotter, title)
         plotter.view_vector(view, (0.0, 0.0, 1.0))
-        plotter.camera.focal_point = tuple(path.mean(axis=0))
+        # centred on the path, looking along the view still (moving the focal point alone
+        # turned the view)
+        camera = plotter.camera
+        shift = path.mean(axis=0) - np.array(camera.focal_point)
+        camera.position = tuple(camera.position + shift)
+        camera.focal_point = tuple(camera.focal_point + shift)
+        plotter.renderer.reset_camera_clipping_range()
+    plotter.subplot(0, 0)
+    plotter.add_text(
+        f"patella straight (pale) and at {reached:.0f} deg (blue),\nred: the path of its centroid",
+        position=(0.01, 0.02), viewport=True, font_size=9,
+    )  # fmt: skip
     plotter.screenshot(output / "knee_patella_path.png")
     plotter.close()
 
