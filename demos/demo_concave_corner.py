@@ -552,42 +552,50 @@ if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
         for name, mask in (("block", ~wedge_points), ("wedge", wedge_points))
     }
     scale = "material depth (mm)"
-    bar = {
-        "position_x": 0.2,
-        "position_y": 0.03,
-        "width": 0.6,
-        "height": 0.1,
-        "title_font_size": 14,
-    }
-    plotter = pyvista.Plotter(shape=(1, 2), window_size=(1200, 560), off_screen=True)
+    # each panel's title and colour key in a strip below it, where they cover none of the
+    # mesh (the close-up fills its panel); the bands' edges labelled, in round numbers
+    plotter = pyvista.Plotter(
+        shape=(2, 2), row_weights=[4, 1], window_size=(1200, 700), off_screen=True
+    )
+
+    def add_key(column: int, actor, caption: str) -> None:
+        plotter.subplot(1, column)
+        plotter.add_text(caption, position=(0.01, 0.6), viewport=True, font_size=10)
+        # no title on the bar: VTK drew it over the labels (the caption gives the unit); a
+        # title of its own for each bar all the same, as pyvista merges the ranges of bars
+        # of one title
+        plotter.add_scalar_bar(
+            " " * column, mapper=actor.mapper, position_x=0.2, position_y=0.06, width=0.6,
+            height=0.42, label_font_size=16, fmt="%g",
+            n_labels=actor.mapper.lookup_table.n_values + 1,
+        )  # fmt: skip
+
     plotter.subplot(0, 0)
     bands = {"scalars": scale, "cmap": "viridis", "n_colors": 8, "clim": [0.0, 4.0]}
     plotter.add_mesh(cut["block"], **bands, show_scalar_bar=False)
-    plotter.add_mesh(cut["wedge"], **bands, scalar_bar_args={"title": scale, **bar})
-    plotter.add_text("initial state, cut at mid-thickness", font_size=10)
+    wedge = plotter.add_mesh(cut["wedge"], **bands, show_scalar_bar=False)
     plotter.view_xy()
     plotter.enable_parallel_projection()
-    plotter.camera.focal_point = (-9.0, -3.0, thickness / 2)
-    plotter.camera.position = (-9.0, -3.0, thickness / 2 + 100.0)
-    plotter.camera.parallel_scale = 20.0
+    plotter.camera.focal_point = (-10.0, 0.0, thickness / 2)
+    plotter.camera.position = (-10.0, 0.0, thickness / 2 + 100.0)
+    plotter.camera.parallel_scale = 23.0  # the block (from x = -30) and the wedge, with a margin
     # Close-up: the block's tetrahedra around the concave edge, in finer bands, and the outline
     # of the wedge's tip (lifted towards the camera so that the block's faces do not hide it).
     plotter.subplot(0, 1)
     zoom = 1.5  # mm around the concave edge
     close_up = {"scalars": scale, "cmap": "viridis", "n_colors": 6, "clim": [0.0, zoom]}
-    plotter.add_mesh(
-        cut["block"], **close_up, show_edges=True, scalar_bar_args={"title": f"{scale} ", **bar}
-    )
+    block = plotter.add_mesh(cut["block"], **close_up, show_edges=True, show_scalar_bar=False)
     outline = cut["wedge"].extract_feature_edges(
         boundary_edges=True, feature_edges=False, manifold_edges=False, non_manifold_edges=False
     )
     plotter.add_mesh(outline.translate((0.0, 0.0, 0.5)), color="red", line_width=4)
-    plotter.add_text("close-up: the block's tetrahedra, the wedge's tip (red)", font_size=10)
     plotter.view_xy()
     plotter.enable_parallel_projection()
     plotter.camera.focal_point = (apex[0], apex[1] - 0.3, thickness / 2)
     plotter.camera.position = (apex[0], apex[1] - 0.3, thickness / 2 + 100.0)
     plotter.camera.parallel_scale = 1.2 * zoom
+    add_key(0, wedge, f"initial state, cut at mid-thickness\n{scale}")
+    add_key(1, block, f"close-up: the block's tetrahedra, the wedge's tip (red)\n{scale}")
     plotter.screenshot(output / "concave_corner_depth.png")
     plotter.close()
     show_image(output / "concave_corner_depth.png")
