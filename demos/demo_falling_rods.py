@@ -224,7 +224,8 @@ x0, x1, y0, y1 = geometry.foundation_box
 span = max(x1 - x0, y1 - y0)
 centre = geometry.rotation() @ np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.3 * geometry.length])
 view = np.array([-0.2, -1.0, 0.45])
-camera = centre + 2.4 * span * view / np.linalg.norm(view)
+# far enough for the upright rods at t = 0 and the foundation's lowest corner, with a margin
+camera = centre + 2.6 * span * view / np.linalg.norm(view)
 
 
 def render(path: Path, t: float) -> None:
@@ -244,9 +245,13 @@ def render(path: Path, t: float) -> None:
     plotter.add_mesh(
         rods_part.extract_surface(), scalars="displacement (m)", cmap="plasma",
         clim=[0.0, geometry.length], show_edges=False,
-        scalar_bar_args={"title": "displacement (m)", "color": "black", "width": 0.5,
-                         "position_x": 0.25, "position_y": 0.03},
+        scalar_bar_args={"title": "displacement (m)", "color": "black", "vertical": True,
+                         "position_x": 0.05, "position_y": 0.3, "width": 0.05, "height": 0.45,
+                         "title_font_size": 16, "label_font_size": 16, "fmt": "%g"},
     )  # fmt: skip
+    # upright at the left, where the scene leaves room: lying at the bottom, the bar covered
+    # the foundation and its title the labels
+    plotter.scalar_bar.SetVerticalTitleSeparation(10)
     plotter.add_text(f"t = {t:.3f} s", font_size=12, color="black")
     plotter.camera.focal_point = tuple(centre)
     plotter.camera.position = tuple(camera)
