@@ -688,6 +688,59 @@ def test_bulk_jacobian_through_dolfinx_csr_equals_dolfinx_petsc_assembly():
         mat.destroy()
 
 
+def test_bulk_jacobian_reused_while_nothing_it_reads_changes():
+    """BulkMatrix adds the last assembly's values again, without assembling, while the form's
+    constants, coefficients and mesh coordinates are unchanged (a Jacobian independent of the
+    displacement), and assembles again when any of them changes: the matrix equals
+    dolfinx.fem.petsc's assembly after every change, on any number of ranks."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, _ = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
+    stiffness = dolfinx.fem.Constant(mesh, 2.0)
+    field = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("DG", 0)))
+    field.x.array[:] = 1.0
+    du, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    sym = ufl.sym
+    linear = dolfinx.fem.form(
+        stiffness * field * ufl.inner(sym(ufl.grad(du)), sym(ufl.grad(v))) * ufl.dx
+    )
+    nonlinear = dolfinx.fem.form(ufl.derivative(residual, u, du))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
+    dirichlet = assembly.global_dirichlet_dofs(comm, V, bcs)
+
+    def check(bulk, a, reused):
+        mine, theirs = contact.create_matrix(a, bcs), contact.create_matrix(a, bcs)
+        bulk.add_to(mine)
+        mine.assemble()
+        dolfinx.fem.petsc.assemble_matrix(theirs, a, bcs)
+        theirs.assemble()
+        reference = theirs.norm(PETSc.NormType.FROBENIUS)
+        mine.axpy(-1.0, theirs)
+        assert mine.norm(PETSc.NormType.FROBENIUS) <= 1e-13 * reference
+        assert bulk.reused == reused
+        for mat in (mine, theirs):
+            mat.destroy()
+
+    bulk = BulkMatrix(linear, bcs, dirichlet)
+    check(bulk, linear, 0)
+    u.x.array[:] = 0.01  # the linear form does not read u
+    check(bulk, linear, 1)
+    check(bulk, linear, 2)
+    stiffness.value = 3.0  # a constant
+    check(bulk, linear, 2)
+    check(bulk, linear, 3)
+    field.x.array[: field.x.array.size // 2] = 0.5  # a coefficient (on some rank)
+    check(bulk, linear, 3)
+    mesh.geometry.x[:, 2] *= 1.1  # the mesh
+    check(bulk, linear, 3)
+    check(bulk, linear, 4)
+    mesh.geometry.x[:, 2] /= 1.1
+    bulk = BulkMatrix(nonlinear, bcs, dirichlet)
+    for step in range(3):  # reads u, which changes
+        u.x.array[:] = 0.01 * step
+        check(bulk, nonlinear, 0)
+
+
 def test_line_search_start_merit_is_not_evaluated_again():
     """The line search asks its merit function (the energy, then |F|^2 / 2 near the solution)
     at the step's start, where the last step's trial evaluated it already, and at its trial
