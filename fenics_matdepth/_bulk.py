@@ -24,7 +24,41 @@ import numpy as np
 
 from fenics_matdepth._constants import INDEX
 
-__all__ = ["BulkMatrix"]
+__all__ = ["BulkMatrix", "csr_entries"]
+
+
+def csr_entries(csr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The owned rows' entries of a DOLFINx ``MatrixCSR`` (its pattern: ghost rows' entries
+    are in their owners' rows too, from the sparsity pattern's exchange).
+
+    Returns:
+        ``(data_index, row, col)``, sorted by row (columns in block order within a row): the
+        entry's index in ``csr.data``, its process-local scalar row and its global scalar
+        column.
+    """
+    bs = csr.block_size[0]
+    row_map, col_map = csr.index_map(0), csr.index_map(1)
+    n_blocks = row_map.size_local
+    indptr = np.asarray(csr.indptr[: n_blocks + 1], dtype=INDEX)
+    block_cols = np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)
+    n_cols = col_map.size_local + col_map.num_ghosts
+    global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
+    # MatrixCSR stores bs x bs blocks row-major: entry (r, c) of block k is data[k bs^2 + r bs
+    # + c]. The scalar rows are ordered (block row, r), each holding its blocks' entries
+    # (block, c) in block order.
+    block_row = np.repeat(np.arange(n_blocks, dtype=INDEX), np.diff(indptr))
+    k = np.arange(block_cols.size, dtype=INDEX)
+    r = np.arange(bs, dtype=INDEX)
+    c = np.arange(bs, dtype=INDEX)
+    data_index = (k[None, :, None] * bs * bs + r[:, None, None] * bs + c[None, None, :]).ravel()
+    row = np.broadcast_to(
+        block_row[None, :, None] * bs + r[:, None, None], (bs, k.size, bs)
+    ).ravel()
+    col = np.broadcast_to(
+        bs * global_block[block_cols][None, :, None] + c[None, None, :], (bs, k.size, bs)
+    ).ravel()
+    order = np.argsort(row, kind="stable")
+    return data_index[order], row[order], col[order]
 
 
 class BulkMatrix:
@@ -50,29 +84,10 @@ class BulkMatrix:
     ):
         self.a, self.bcs = a, list(bcs)
         self.csr = dolfinx.fem.create_matrix(a)
+        data_index, row, col = csr_entries(self.csr)
         bs = self.csr.block_size[0]
-        row_map, col_map = self.csr.index_map(0), self.csr.index_map(1)
+        row_map = self.csr.index_map(0)
         n_blocks = row_map.size_local
-        indptr = np.asarray(self.csr.indptr[: n_blocks + 1], dtype=INDEX)
-        block_cols = np.asarray(self.csr.indices[: indptr[-1]], dtype=INDEX)
-        n_cols = col_map.size_local + col_map.num_ghosts
-        global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
-        # MatrixCSR stores bs x bs blocks row-major: entry (r, c) of block k is data[k bs^2 +
-        # r bs + c]. The scalar rows are ordered (block row, r), each holding its blocks' entries
-        # (block, c) in block order.
-        block_row = np.repeat(np.arange(n_blocks, dtype=INDEX), np.diff(indptr))
-        k = np.arange(block_cols.size, dtype=INDEX)
-        r = np.arange(bs, dtype=INDEX)
-        c = np.arange(bs, dtype=INDEX)
-        data_index = (k[None, :, None] * bs * bs + r[:, None, None] * bs + c[None, None, :]).ravel()
-        row = np.broadcast_to(
-            block_row[None, :, None] * bs + r[:, None, None], (bs, k.size, bs)
-        ).ravel()
-        col = np.broadcast_to(
-            bs * global_block[block_cols][None, :, None] + c[None, None, :], (bs, k.size, bs)
-        ).ravel()
-        order = np.argsort(row, kind="stable")
-        data_index, row, col = data_index[order], row[order], col[order]
         r0 = bs * row_map.local_range[0]
         global_row = row + r0
         in_dirichlet_row = np.isin(global_row, dirichlet)

@@ -155,6 +155,38 @@ def test_jacobian_insertion_matches_sorted_coo(integration):
     A.destroy()
 
 
+def test_pattern_is_the_assembled_bulk_pattern_and_the_contact_blocks():
+    """create_matrix's pattern (the bulk part taken from DOLFINx's native CSR matrix, without
+    assembling) is, entry for entry, the pattern of the bulk form assembled by
+    dolfinx.fem.petsc joined with the 3 x 3 blocks of every rank's contact couplings."""
+    comm = MPI.COMM_WORLD
+    _, V, _, op = _setup(comm, "area")
+    a = dolfinx.fem.form(
+        ufl.inner(ufl.grad(ufl.TrialFunction(V)), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    )
+    A = op.create_matrix(a)
+    A.assemble()
+    indptr, indices, _ = A.getValuesCSR()
+    r0, r1 = A.getOwnershipRange()
+    n = 3 * op.num_vertices
+    pattern = np.repeat(np.arange(r0, r1), np.diff(indptr)) * n + indices
+    bulk = dolfinx.fem.petsc.assemble_matrix(a)
+    bulk.assemble()
+    b_indptr, b_indices, _ = bulk.getValuesCSR()
+    expected = [np.repeat(np.arange(r0, r1), np.diff(b_indptr)) * n + b_indices]
+    keys = np.concatenate(comm.allgather(op._pattern_keys))
+    assert keys.size > 0
+    vi, vj = keys // op.num_vertices, keys % op.num_vertices
+    for r in range(3):
+        for c in range(3):
+            row, col = 3 * vi + r, 3 * vj + c
+            mine = (row >= r0) & (row < r1)
+            expected.append(row[mine] * n + col[mine])
+    assert np.array_equal(np.sort(pattern), np.unique(np.concatenate(expected)))
+    for mat in (A, bulk):
+        mat.destroy()
+
+
 def test_pattern_without_dirichlet_couplings():
     """create_matrix(a, bcs) leaves the Dirichlet rows and columns (whole vertices and single
     components) out of the pattern but for the diagonal; assembled with those conditions it

@@ -14,6 +14,7 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
+from fenics_matdepth._bulk import csr_entries
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels import (
     _accumulate_vertex_blocks,
@@ -206,15 +207,14 @@ def create_matrix(
         An AIJ matrix (block size 3) preallocated exactly, in which insertion never mallocs
         (collective).
     """
-    from dolfinx.fem.petsc import assemble_matrix
     from dolfinx.fem.petsc import create_matrix as dolfinx_create_matrix
 
+    # the sizes and the local-to-global map from DOLFINx's PETSc matrix; the bulk pattern from
+    # its native CSR matrix, without assembling the form (which took 0.57 s at 172k cells)
     bulk = dolfinx_create_matrix(a)
-    assemble_matrix(bulk, a)
-    bulk.assemble()
-    indptr, indices, _ = bulk.getValuesCSR()
     r0, r1 = bulk.getOwnershipRange()
-    bulk_rows = np.repeat(np.arange(r0, r1, dtype=INDEX), np.diff(indptr))
+    _, local_rows, bulk_cols = csr_entries(dolfinx.fem.create_matrix(a))
+    bulk_rows = local_rows + r0
 
     vi = keys // num_vertices
     vj = keys % num_vertices
@@ -234,7 +234,7 @@ def create_matrix(
     ]
     recv = comm.alltoall(send)
     all_rows = np.concatenate([bulk_rows] + [m[0] for m in recv])
-    all_cols = np.concatenate([indices.astype(INDEX)] + [m[1] for m in recv])
+    all_cols = np.concatenate([bulk_cols] + [m[1] for m in recv])
     n_global = 3 * num_vertices
     key = np.unique(all_rows * n_global + all_cols)
     rows_u, cols_u = key // n_global, key % n_global
