@@ -1000,14 +1000,16 @@ _SUM_CHUNK = 32
 
 @njit(cache=True)
 def _sum_pair_rows(
-    tri, tet, pair_tri, pair_tet, start, count, grad, hess, want_hess, pos, bc_mask, grad_sum,
-    reached, blocks, touched,
+    tri, tet, pair_tri, pair_tet, start, count, grad, hess, want_hess, pos, grad_sum, reached,
+    blocks, touched,
 ):  # fmt: skip
     """Add rows ``0..count`` of a chunk's pair gradients and Hessians (pairs ``start ..
     start + count``) into per-dof sums and the pattern's 3 x 3 blocks.
 
     The same sums, in the same order, as `gradient_array` (``np.bincount`` over the pairs'
-    dofs) and `_accumulate_vertex_blocks` on the materialised arrays.
+    dofs) and `_accumulate_vertex_blocks` on the materialised arrays, but for the Dirichlet
+    rows and columns, which `_zero_dirichlet` clears after the last chunk (a mask test per
+    entry here cost more than the sums).
     """
     for q in range(count):
         p = start + q
@@ -1024,15 +1026,37 @@ def _sum_pair_rows(
                 key = pos[p, a, b]
                 if key < 0:
                     continue
-                vb = tri[t, b] if b < 3 else tet[k, b - 3]
                 touched[key] = True
-                _add_vertex_block(blocks, key, hess, q, a, b, va, vb, bc_mask)
+                # the Dirichlet rows and columns are zeroed after the sums (`_zero_dirichlet`)
+                for r in range(3):
+                    for c in range(3):
+                        blocks[key, r, c] += hess[q, 3 * a + r, 3 * b + c]
+
+
+@njit(cache=True)
+def _zero_dirichlet(keys, bc_mask, blocks, touched):
+    """Zero the Dirichlet rows and columns of the touched blocks of the held-numbered pattern
+    ``keys`` (``bc_mask`` over the held dofs)."""
+    nh = bc_mask.shape[0] // 3
+    for k in range(keys.shape[0]):
+        if not touched[k]:
+            continue
+        vi = keys[k] // nh
+        vj = keys[k] % nh
+        for r in range(3):
+            if bc_mask[3 * vi + r]:
+                for c in range(3):
+                    blocks[k, r, c] = 0.0
+        for c in range(3):
+            if bc_mask[3 * vj + c]:
+                for r in range(3):
+                    blocks[k, r, c] = 0.0
 
 
 @njit(cache=True)
 def _area_pairs_summed(
-    x, depth, tri, tet, pair_tri, pair_tet, penalty, want_hess, pos, bc_mask, energy, grad_sum,
-    reached, blocks, touched,
+    x, depth, tri, tet, pair_tri, pair_tet, penalty, want_hess, pos, keys, bc_mask, energy,
+    grad_sum, reached, blocks, touched,
 ):  # fmt: skip
     """`_area_pairs` with the gradients (and Hessians) summed as they are made, never
     materialised for all pairs: chunks of `_SUM_CHUNK` pairs go through the one pair loop
@@ -1045,7 +1069,9 @@ def _area_pairs_summed(
         want_hess: whether to compute and sum the Hessians.
         pos: (np, 7, 7) pattern index of each pair coupling, -1 outside the pattern (left
             out), as `_coupling_positions`; read only if want_hess.
-        bc_mask: (3 nv,) True on Dirichlet dofs, whose Hessian rows and columns are skipped.
+        keys: (nk,) the pattern's sorted vertex-coupling keys ``vi * nv + vj`` (``pos``
+            indexes them); read only if want_hess.
+        bc_mask: (3 nv,) True on Dirichlet dofs, whose Hessian rows and columns are left out.
         energy: (np,) output, the pair energies (0 for a pair that does not contribute).
         grad_sum: (3 nv,) output, added to: the gradient summed over the pairs.
         reached: (3 nv,) bool output, set True on every dof of a pair.
@@ -1064,8 +1090,10 @@ def _area_pairs_summed(
         )  # fmt: skip
         _sum_pair_rows(
             tri, tet, pair_tri, pair_tet, start, stop - start, grad, hess, want_hess, pos,
-            bc_mask, grad_sum, reached, blocks, touched,
+            grad_sum, reached, blocks, touched,
         )  # fmt: skip
+    if want_hess:
+        _zero_dirichlet(keys, bc_mask, blocks, touched)
 
 
 @njit(cache=True)

@@ -270,7 +270,8 @@ class ContactOperator:
         self._reached.fill(False)
         if want_hess:
             pos = self._coupling_positions()
-            nk = self._pattern_in_held_numbering().size
+            keys = self._pattern_in_held_numbering()
+            nk = keys.size
             if self._blocks.shape[0] != nk:
                 self._blocks = np.empty((nk, 3, 3), dtype=FLOAT)
                 self._touched = np.empty(nk, dtype=bool)
@@ -278,10 +279,11 @@ class ContactOperator:
             self._touched.fill(False)
         else:
             pos = np.empty((0, 7, 7), dtype=INDEX)
+            keys = np.empty(0, dtype=INDEX)
         energy = np.empty(pa.size, dtype=FLOAT)
         _area_pairs_summed(
             s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty, want_hess, pos,
-            s.bc, energy, self._grad_sum, self._reached, self._blocks, self._touched,
+            keys, s.bc, energy, self._grad_sum, self._reached, self._blocks, self._touched,
         )  # fmt: skip
         out = {"energy": energy, "grad_sum": self._grad_sum, "reached": self._reached}
         if want_hess:
