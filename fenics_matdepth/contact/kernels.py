@@ -72,7 +72,7 @@ def _area_work():
         np.empty((_NV, 6), dtype=np.int64),  # 9 Lam index of the live columns of 5
         np.empty((4, _NV, 3, 3), dtype=FLOAT),  # 10 Hessian blocks over (mu_k, G)
         np.empty((9, 9), dtype=FLOAT),  # 11 T: Hessian of Phi w.r.t. triangle vertices
-        np.empty((9, 21), dtype=FLOAT),  # 12 V: half-contracted Hessian
+        np.empty((9, 12), dtype=FLOAT),  # 12 V: triangle-tetrahedron block of J^T H_Lam J
         np.empty((12, 9), dtype=FLOAT),  # 13 U
         np.empty(21, dtype=FLOAT),  # 14 d Phi / d x
         np.empty(9, dtype=FLOAT),  # 15 d A / d x
