@@ -329,8 +329,13 @@ if comm.rank == 0:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter
 
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    # dt, Newton iterations and active pairs have their own panels and axes: one log axis
+    # shared by milliseconds and counts had no label, and could not show zero pairs
+    fig, (top, middle, bottom) = plt.subplots(
+        3, 1, figsize=(7, 7.5), sharex=True, height_ratios=(2.2, 1.0, 1.6)
+    )
     top.plot(t, 1e3 * work, label="work of gravity")
     top.plot(t, 1e3 * strain, label="strain energy")
     top.plot(t, 1e3 * kinetic, label="kinetic energy")
@@ -339,9 +344,26 @@ if comm.rank == 0:
     top.set_ylabel("energy (mJ)")
     top.legend(fontsize=8)
     top.grid(alpha=0.3)
-    bottom.semilogy(t[1:], [1e3 * r.dt for r in steps], ".-", label="dt (ms)")
-    bottom.semilogy(t[1:], iterations, "s", markersize=3, label="Newton iterations")
-    bottom.semilogy(t[1:], [max(r.active_pairs, 0.5) for r in steps], label="active pairs")
+    step_ms = np.array([1e3 * r.dt for r in steps])
+    middle.plot(t[1:], step_ms, ".-")
+    # a log2 axis ticked at the halvings of the nominal step, which is what a cut does
+    middle.set_yscale("log", base=2)
+    halvings = np.arange(int(np.ceil(np.log2(1e3 * dt / step_ms.min()) - 1e-9)) + 1)
+    middle.set_yticks(1e3 * dt / 2.0**halvings, [f"{1e3 * dt / 2.0**k:g}" for k in halvings])
+    middle.minorticks_off()
+    middle.set_ylim(step_ms.min() / 1.6, 1.6 * step_ms.max())
+    middle.set_ylabel("time step (ms)")
+    middle.grid(alpha=0.3)
+    # symlog: linear from 0 to 1, so that a step without contact sits on the 0 tick
+    bottom.plot(t[1:], iterations, "s", markersize=3, label="Newton iterations")
+    pairs = [r.active_pairs for r in steps]
+    bottom.plot(t[1:], pairs, ".-", label="active pairs")
+    bottom.set_yscale("symlog", linthresh=1.0, linscale=0.5)
+    # below 0 by a little, so that the markers at 0 are not cut by the frame, and up to the
+    # next power of ten, so that the largest count lies below a labelled tick
+    bottom.set_ylim(-0.4, 10.0 ** np.ceil(np.log10(max(10, *iterations, *pairs))))
+    bottom.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+    bottom.set_ylabel("count per step")
     bottom.set_xlabel("time (s)")
     bottom.legend(fontsize=8)
     bottom.grid(alpha=0.3)
