@@ -214,6 +214,19 @@ def gather_grid(u: fem.Function):
 grids = {name: gather_grid(u) for name, u in solutions.items()}
 if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
     largest = max(np.linalg.norm(values, axis=1).max() for *_, values in grids.values())
+    # the colour scale ends on a round value, so that its labels are round and alike (they
+    # mixed "0.648" with "0.00"): labelled bands of 1, 2 or 5 times a power of ten, at most 7
+    unit = 10.0 ** np.floor(np.log10(largest))
+    band = next(unit * f for f in (0.1, 0.2, 0.5, 1.0) if largest <= 7.0 * unit * f)
+    top = band * np.ceil(largest / band - 1e-9)
+    bar = {
+        "title": "displacement (m)", "vertical": True, "fmt": "%g", "color": "black",
+        "n_labels": round(top / band) + 1, "title_font_size": 16, "label_font_size": 16,
+        "position_x": 0.8, "position_y": 0.1, "width": 0.08, "height": 0.6,
+    }  # fmt: skip
+    # one view for the four panels, fitted to every bar, so that their sags compare by eye
+    corners = np.vstack([np.vstack((p, p + v)) for _, _, p, v in grids.values()])
+    bounds = np.ravel(np.column_stack((corners.min(axis=0), corners.max(axis=0))))
     plotter = pyvista.Plotter(shape=(2, 2), window_size=(1200, 800), off_screen=True)
     for index, (name, (cells, types, points, values)) in enumerate(grids.items()):
         plotter.subplot(index // 2, index % 2)
@@ -225,12 +238,15 @@ if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
             deformed,
             scalars="displacement (m)",
             show_edges=True,
-            clim=[0.0, largest],
-            scalar_bar_args={"vertical": True, "position_x": 0.78, "position_y": 0.2},
+            clim=[0.0, top],
+            scalar_bar_args=bar,
         )
         plotter.add_text(f"{name}: tip {tip_deflection[name]:+.3f} m", font_size=10)
-        plotter.view_xz()
+        plotter.view_xz(bounds=bounds)
         plotter.camera.zoom(1.3)
+    plotter.subplot(0, 0)
+    # room between the title and the top label
+    plotter.scalar_bar.SetVerticalTitleSeparation(10)
     plotter.screenshot(output / "hyperelastic_bar.png")
     plotter.close()
     show_image(output / "hyperelastic_bar.png")
