@@ -369,10 +369,8 @@ class ContactOperator:
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
         """Remember the Dirichlet dofs, whose rows and columns :meth:`add_jacobian` skips
         (collective)."""
-        n = self.surface.owned_dof_count()
-        mask_local = np.zeros(n, dtype=bool)
-        dofs = assembly.owned_dirichlet_dofs(bcs)
-        mask_local[dofs[dofs < n]] = True
+        mask_local = np.zeros(self.surface.owned_dof_count(), dtype=bool)
+        mask_local[assembly.owned_dirichlet_dofs(bcs)] = True
         self.surface.set_bcs(mask_local)
         self._cache.pop("summed_hess", None)  # its blocks leave out the Dirichlet rows
 
