@@ -76,7 +76,12 @@ from dolfinx import fem, io, mesh, plot
 
 from fenics_matdepth import materials
 from fenics_matdepth._compat import solve_nonlinear
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, show_image
+from fenics_matdepth.plotting import (
+    gather_vtk_grid,
+    offscreen_pyvista,
+    round_bands,
+    show_image,
+)
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -216,12 +221,11 @@ if comm.rank == 0 and (pyvista := offscreen_pyvista()) is not None:
     largest = max(np.linalg.norm(values, axis=1).max() for *_, values in grids.values())
     # the colour scale ends on a round value, so that its labels are round and alike (they
     # mixed "0.648" with "0.00"): labelled bands of 1, 2 or 5 times a power of ten, at most 7
-    unit = 10.0 ** np.floor(np.log10(largest))
-    band = next(unit * f for f in (0.1, 0.2, 0.5, 1.0) if largest <= 7.0 * unit * f)
-    top = band * np.ceil(largest / band - 1e-9)
+    band, count = round_bands(largest, 7)
+    top = band * count
     bar = {
         "title": "displacement (m)", "vertical": True, "fmt": "%g", "color": "black",
-        "n_labels": round(top / band) + 1, "title_font_size": 16, "label_font_size": 16,
+        "n_labels": count + 1, "title_font_size": 16, "label_font_size": 16,
         "position_x": 0.8, "position_y": 0.1, "width": 0.08, "height": 0.6,
     }  # fmt: skip
     # one view for the four panels, fitted to every bar, so that their sags compare by eye

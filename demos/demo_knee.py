@@ -88,6 +88,7 @@ from fenics_matdepth._compat import interpolation_points
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
+    round_bands,
     show_image,
     write_animation,
 )
@@ -902,9 +903,7 @@ by_body = {
 def by_depth(grid) -> dict:
     """Material depth in 5 to 12 bands of 1, 2 or 5 times a power of ten mm, from 0 to the
     first band edge above the largest depth in ``grid``: the key's labels are round numbers."""
-    largest = max(float(grid.point_data["material depth (mm)"].max()), 1e-3)
-    width = next(w for w in (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0) if largest / w <= 12)
-    bands = int(np.ceil(largest / width - 1e-9))
+    width, bands = round_bands(grid.point_data["material depth (mm)"].max(), 12)
     return {"scalars": "material depth (mm)", "cmap": "viridis", "n_colors": bands,
             "clim": [0.0, bands * width], "show_scalar_bar": False}  # fmt: skip
 

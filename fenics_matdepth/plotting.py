@@ -14,10 +14,29 @@ import numpy as np
 __all__ = [
     "gather_vtk_grid",
     "offscreen_pyvista",
+    "round_bands",
     "show_image",
     "start_virtual_display",
     "write_animation",
 ]
+
+
+def round_bands(largest: float, most: int) -> tuple[float, int]:
+    """Colour bands of a round width for values from 0 to ``largest``: the narrowest width of 1,
+    2 or 5 times a power of ten that needs at most ``most`` bands, and how many it needs (the
+    band edges, and so a colour key's labels, are then round numbers).
+
+    Returns:
+        ``(width, count)``: the scale runs from 0 to ``count * width >= largest``.
+    """
+    if not largest > 0.0:  # nothing to show: one band of unit width
+        return 1.0, 1
+    exponent = np.floor(np.log10(largest / most))
+    for step in (1.0, 2.0, 5.0, 10.0):  # the last always fits: 10^(exponent+1) > largest / most
+        width = step * 10.0**exponent
+        if largest / width <= most * (1.0 + 1e-12):
+            break
+    return width, max(1, int(np.ceil(largest / width - 1e-9)))
 
 
 def start_virtual_display() -> bool:

@@ -1,11 +1,11 @@
-"""Plotting helpers that need no renderer: the GIF writer."""
+"""Plotting helpers that need no renderer: the GIF writer, the colour bands."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fenics_matdepth.plotting import write_animation
+from fenics_matdepth.plotting import round_bands, write_animation
 
 
 @pytest.mark.serial
@@ -37,3 +37,23 @@ def test_write_animation_rejects_bad_frames(tmp_path):
     frames = [np.zeros((4, 4, 3), np.uint8), np.zeros((5, 4, 3), np.uint8)]
     with pytest.raises(ValueError, match="same size"):
         write_animation(frames, tmp_path / "b.gif")
+
+
+@pytest.mark.parametrize(
+    ("largest", "most", "width", "count"),
+    [
+        (0.648, 7, 0.1, 7),  # the hyperelastic bar's displacement
+        (38.2, 12, 5.0, 8),  # the knee's cut-away depth
+        (11.8, 12, 1.0, 12),  # the fold's
+        (12.0, 12, 1.0, 12),  # a largest value on a band edge needs no further band
+        (12.5, 12, 2.0, 7),
+        (3.0e-4, 5, 1e-4, 3),
+        (0.0, 5, 1.0, 1),  # nothing to show: one band
+    ],
+)
+def test_round_bands(largest, most, width, count):
+    """The narrowest width of 1, 2 or 5 times a power of ten with at most ``most`` bands."""
+    got_width, got_count = round_bands(largest, most)
+    assert got_width == pytest.approx(width, rel=1e-12)
+    assert got_count == count
+    assert got_count <= most and got_count * got_width >= largest
