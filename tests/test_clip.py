@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from fractions import Fraction
+
+from mpi4py import MPI
 
 import numpy as np
 import pytest
@@ -519,3 +523,44 @@ def test_near_pairs_never_drop_a_pair_within_gap(tri, tet):
     gap = 0.3
     if _sampled_distance(x_tri, x_tet) <= gap:
         assert _one_pair_near(x_tri, x_tet, gap)
+
+
+_FAST_CALLER = """
+import numpy as np
+from numba import njit
+from fenics_matdepth.geometry import clip
+
+@njit(fastmath={"contract"})
+def caller(x, tri, tet, pair_tri, pair_tet, out, a, b, c):
+    return clip._intersect_pairs(x, tri, tet, pair_tri, pair_tet, out), a * b + c
+
+x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+x[:3, 2] = 0.25
+one = np.zeros(1, dtype=np.int64)
+print(caller(x, np.array([[0, 1, 2]]), np.array([[3, 4, 5, 6]]), one, one,
+             np.empty(1, dtype=np.bool_), 1.0, 2.0, 3.0)[0])
+
+def ir(d):
+    return " ".join(c.library.get_llvm_str() for c in d.overloads.values())
+
+assert " contract " in ir(caller)
+kernels = [getattr(clip, n) for n in dir(clip) if hasattr(getattr(clip, n), "overloads")]
+print(sorted(k.__name__ for k in kernels if k.overloads and " contract " in ir(k)))
+"""
+
+
+def test_clip_stays_exact_under_a_fast_math_caller(tmp_path, child_env):
+    """numba compiles a function that has no fast-math setting of its own with the flags of
+    the caller it is first compiled for, and keeps that machine code for every later call
+    (and on disk). The pair kernels fuse multiply-adds; the clip's sign tests must not,
+    whichever is compiled first. Compiled fresh (an empty cache) in a child process, first
+    for a caller with fused multiply-adds: no clip function carries the flag."""
+    if MPI.COMM_WORLD.rank != 0:  # one child is enough
+        return
+    env = dict(child_env, NUMBA_CACHE_DIR=str(tmp_path), MATDEPTH_QUIET_JIT="1")
+    out = subprocess.run(
+        [sys.executable, "-c", _FAST_CALLER], env=env, capture_output=True, text=True, check=True
+    )
+    hit, contracted = out.stdout.split("\n")[:2]
+    assert hit == "1"  # the triangle at height 1/4 cuts the tetrahedron
+    assert contracted == "[]"

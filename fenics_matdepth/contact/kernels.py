@@ -54,9 +54,15 @@ _ONE_TRI = np.array([[0, 1, 2]], dtype=INDEX)
 #: Below this |sum(c_a x c_b)| two polygon lines are taken as parallel (derivative guard; the
 #: coefficients are barycentric values of order one, so this only catches exact parallelism).
 _PARALLEL_TOL = 1e-100
+#: Floating-point licence of the pair kernels: "contract" lets LLVM fuse a multiplication and
+#: an addition into one fused multiply-add (one rounding instead of two); the Hessian pass takes
+#: about 0.81 of its time without it (docs/kernels.md). No other fast-math licence: NaN and inf
+#: propagate and sums keep their order. The clip (geometry/clip.py), whose signs decide which
+#: pairs intersect, is compiled without it.
+_FMA = {"contract"}
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_work():
     """Scratch arrays of one area-integration kernel call (allocated once per driver call)."""
     return (
@@ -85,7 +91,7 @@ def _area_work():
     )
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _line(lam, label, r):
     """Component r of the homogeneous coefficient vector of line ``label`` (0..6)."""
     if label < 3:
@@ -93,7 +99,7 @@ def _line(lam, label, r):
     return lam[r, label - 3]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _line_sum_cross(lam, la, lb):
     """``s = sum(c_a x c_b)`` (the homogeneous weight of the vertex on lines la, lb)."""
     ca0 = _line(lam, la, 0)
@@ -105,7 +111,7 @@ def _line_sum_cross(lam, la, lb):
     return (ca1 * cb2 - ca2 * cb1) + (ca2 * cb0 - ca0 * cb2) + (ca0 * cb1 - ca1 * cb0)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _vertex_gradient(lam, mu_k, la, lb, w, gphi):
     """``gphi += (d mu / d Lam)^T w`` for the vertex on lines la, lb.
 
@@ -137,7 +143,7 @@ def _vertex_gradient(lam, mu_k, la, lb, w, gphi):
         gphi[8 + lb - 3] += v0 * ca1 - v1 * ca0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _vertex_jacobian(lam, mu_k, la, lb, jac, idx):
     """Live columns of ``d mu / d Lam`` for the vertex on lines la, lb.
 
@@ -166,7 +172,7 @@ def _vertex_jacobian(lam, mu_k, la, lb, jac, idx):
     return s, nc
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _dm_column(lam, la, lb, col):
     """Column ``col`` (0..5) of d m / d (c_a, c_b), m = c_a x c_b: e_i x c_b or c_a x e_i."""
     if col < 3:
@@ -190,7 +196,7 @@ def _dm_column(lam, la, lb, col):
     return c1, -c0, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
     """``hphi += sum_r w_r d2 mu_r / d Lam2`` for the vertex on lines la, lb."""
     if (la < 3 and lb < 3) or not np.isfinite(s):
@@ -235,7 +241,7 @@ def _vertex_curvature(lam, mu_k, la, lb, s, w, hphi):
 
 # not inlined into `_area_pair` either: it runs once per pair when the Hessian is wanted, and
 # compiling it on its own shortens the first run's compilation further
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi, cg):
     """``hphi += J^T B J + sum_k w_k . d2 mu_k``: the Hessian blocks over (mu_0.., G) pulled
     back to Lam through the sparse vertex Jacobians (at most 6 live columns each) and
@@ -294,7 +300,7 @@ def _assemble_phi_hessian(lam, dt, mu, vlab, n, wmu, jmu, jidx, ncol, blk, hphi,
                     hphi[4 * i + j, 4 * i2 + j2] += bg * dt[j] * dt[j2]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _clip_shift_jacobian(xs, ds):
     """``ds[a, 3 m + b] = d s_a / d x_mb`` of the clip shift s (`_clip_shift`), exactly.
 
@@ -354,7 +360,7 @@ def _clip_shift_jacobian(xs, ds):
             ds[2, col] = f0 * nz + c0 * dnz + f1 * az + c1 * daz + f2 * wz + c2 * dwz
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _shift_rows(g, ds):
     """``g[:9] <- T^T g[:9]``, ``T = I + [ds; ds; ds]`` (every corner moves by the same s)."""
     g0 = g[0] + g[3] + g[6]
@@ -368,7 +374,7 @@ def _shift_rows(g, ds):
 # numba's IR inlining of this large kernel made the first run's compilation about three
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up). The same holds
 # for every helper of this module and of geometry/clip.py: none is IR-inlined any more.
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _no_contribution(grad, hess, p, n, want_grad, want_hess):
     """Zero row p of the wanted outputs (n dofs a pair) of a pair that does not contribute;
     returns -1.0."""
@@ -382,7 +388,7 @@ def _no_contribution(grad, hess, p, n, want_grad, want_hess):
     return -1.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hess, p):
     """Area-integration energy of one (triangle, tetrahedron) pair.
 
@@ -726,7 +732,7 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     return energy
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _is_split(tet, k):
     """Whether tetrahedron k is evaluated as four sub-tetrahedra around its centroid: a fifth
     column of ``tet``, when present, holds the index in ``depth`` of the centroid's depth
@@ -734,7 +740,7 @@ def _is_split(tet, k):
     return tet.shape[1] > 4 and tet[k, 4] >= 0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _gather_tet(x, depth, tet, k, s, split, xt, dt):
     """Vertices ``xt`` (4, 3) and depths ``dt`` (4,) of tetrahedron k, or, when ``split``, of
     its sub-tetrahedron s: vertex s replaced by the centroid (the mean of the four current
@@ -752,7 +758,7 @@ def _gather_tet(x, depth, tet, k, s, split, xt, dt):
         dt[s] = depth[tet[k, 4]]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _fold_centroid(grad, hess, row, off, n, s, want_grad, want_hess, acc_g, acc_h):
     """Map sub-tetrahedron s's derivatives (row ``row`` of grad and hess, changed in place) to
     the parent tetrahedron's vertices and add them to ``acc_g`` (n,) and ``acc_h`` (n, n).
@@ -789,7 +795,7 @@ def _fold_centroid(grad, hess, row, off, n, s, want_grad, want_hess, acc_g, acc_
                 acc_h[i, c] += hess[row, i, c]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _store_folded(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
     """Write the accumulated parent-tetrahedron derivatives into row ``row``."""
     if want_grad:
@@ -801,7 +807,7 @@ def _store_folded(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
                 hess[row, i, c] = acc_h[i, c]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _zero_folded(n, want_grad, want_hess, acc_g, acc_h):
     if want_grad:
         for c in range(n):
@@ -812,7 +818,7 @@ def _zero_folded(n, want_grad, want_hess, acc_g, acc_h):
                 acc_h[i, c] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs_core(
     x,
     depth,
@@ -884,7 +890,7 @@ def _area_pairs_core(
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want_hess):
     """Area-integration energies of many (triangle, tetrahedron) pairs.
 
@@ -929,7 +935,7 @@ def _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, penalty, want_grad, want
     return energy, grad, hess
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs_into(
     x,
     depth,
@@ -981,7 +987,7 @@ def _area_pairs_into(
     )
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _add_vertex_block(blocks, key, hess, row, a, b, va, vb, bc_mask):
     """``blocks[key] +=`` the 3 x 3 block (a, b) of pair Hessian ``hess[row]`` (vertices
     ``va``, ``vb``), Dirichlet rows and columns left out."""
@@ -998,7 +1004,7 @@ def _add_vertex_block(blocks, key, hess, row, a, b, va, vb, bc_mask):
 _SUM_CHUNK = 32
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _sum_pair_rows(
     tri, tet, pair_tri, pair_tet, start, count, grad, hess, want_hess, pos, grad_sum, reached,
     blocks, touched,
@@ -1033,7 +1039,7 @@ def _sum_pair_rows(
                         blocks[key, r, c] += hess[q, 3 * a + r, 3 * b + c]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _zero_dirichlet(keys, bc_mask, blocks, touched):
     """Zero the Dirichlet rows and columns of the touched blocks of the held-numbered pattern
     ``keys`` (``bc_mask`` over the held dofs)."""
@@ -1053,7 +1059,7 @@ def _zero_dirichlet(keys, bc_mask, blocks, touched):
                     blocks[k, r, c] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs_summed(
     x, depth, tri, tet, pair_tri, pair_tet, penalty, want_hess, pos, keys, bc_mask, energy,
     grad_sum, reached, blocks, touched,
@@ -1096,7 +1102,7 @@ def _area_pairs_summed(
         _zero_dirichlet(keys, bc_mask, blocks, touched)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _intersecting(x, tri, tet, pair_tri, pair_tet):
     """Indices of the pairs whose triangle meets the tetrahedron (the exact test of
     ``geometry.clip``), in order."""
@@ -1116,7 +1122,7 @@ def _intersecting(x, tri, tet, pair_tri, pair_tet):
 # ------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _scale_row(grad, hess, row, n, factor, want_grad, want_hess):
     """Multiply row ``row`` of grad (n,) and hess (n, n) by ``factor`` in place."""
     if want_grad:
@@ -1128,7 +1134,7 @@ def _scale_row(grad, hess, row, n, factor, want_grad, want_hess):
                 hess[row, r, c] *= factor
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _add_row(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
     """``acc += row`` of grad and hess."""
     if want_grad:
@@ -1140,7 +1146,7 @@ def _add_row(grad, hess, row, n, want_grad, want_hess, acc_g, acc_h):
                 acc_h[r, c] += hess[row, r, c]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs_augmented(
     x, depth, tri, tet, pair_tri, pair_tet, penalty, pressure, width, want_grad, want_hess
 ):
@@ -1235,7 +1241,7 @@ def _area_pairs_augmented(
     return energy, grad, hess
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _polygon_work():
     """Buffers of `_sub_polygon`: xs (3, 3), xt (4, 3), dt (4,), grads (4, 3), lam (3, 4),
     mu, vlab, elab (the clipped polygon, as `_clip` fills them) and gi (3,)."""
@@ -1252,7 +1258,7 @@ def _polygon_work():
     )
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _gather_triangle(x, tri, t, xs):
     """Vertices of triangle t into xs (3, 3); returns twice its area."""
     for a in range(3):
@@ -1261,7 +1267,7 @@ def _gather_triangle(x, tri, t, xs):
     return _triangle_area2(xs)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _sub_polygon(x, depth, tet, k, s, split, work):
     """Clip the triangle in ``work[0]`` against tetrahedron k (sub-tetrahedron s when split):
     the polygon in ``work[5]`` (parameter coordinates on the triangle, as `_clip` gives them)
@@ -1278,7 +1284,7 @@ def _sub_polygon(x, depth, tet, k, s, split, work):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs_pressure_moments(x, depth, tri, tet, pair_tri, pair_tet):
     """The integrals the Uzawa update of the nodal pressures needs, per pair and triangle vertex.
 
@@ -1383,7 +1389,7 @@ def pressure_moments(
     return gmom[0], amom[0]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
     """Largest material depth ``g_K`` reached on each pair's intersection polygon (length).
 
@@ -1420,7 +1426,7 @@ def _area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
 _POINT_INSIDE_TOL = 1e-12
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _point_depths(x, depth, tet, points, pair_point, pair_tet):
     """Material depth ``g_K`` at points, per (point, tetrahedron) pair (length).
 
@@ -1469,7 +1475,7 @@ def _point_depths(x, depth, tet, points, pair_point, pair_tet):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, grad, hess, p):
     """Point-collocation energy of one (vertex, tetrahedron) pair; 15 dofs (vertex, then tet).
 
@@ -1529,7 +1535,7 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, g
     return energy
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, penalty, want_grad, want_hess):
     """Point-collocation energies of many (boundary vertex, tetrahedron) pairs.
 
@@ -1676,7 +1682,7 @@ def collocation_energy(
 # ------------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _key_rows(keys, num_vertices):
     """Row pointers of a sorted vertex-coupling pattern: the keys ``va * num_vertices + vb`` of
     vertex ``va`` are ``keys[rows[va]:rows[va + 1]]``.
@@ -1696,7 +1702,7 @@ def _key_rows(keys, num_vertices):
     return rows
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _coupling_positions(keys, rows, num_vertices, verts, pos):
     """Where each vertex coupling of the pairs lies in a fixed pattern.
 
@@ -1739,7 +1745,7 @@ def _coupling_positions(keys, rows, num_vertices, verts, pos):
     return missing
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _accumulate_vertex_blocks(pos, verts, hess, bc_mask, blocks, touched):
     """Sum the pairs' Hessians into 3 x 3 blocks of a fixed vertex-coupling pattern.
 
@@ -1765,7 +1771,7 @@ def _accumulate_vertex_blocks(pos, verts, hess, bc_mask, blocks, touched):
                 _add_vertex_block(blocks, k, hess, p, a, b, va, vb, bc_mask)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=_FMA)
 def _blocks_to_csr(keys, num_vertices, blocks, touched):
     """The touched 3 x 3 blocks as a CSR over dof rows, for ``MatSetValuesIJV``.
 

@@ -24,6 +24,11 @@ ill-conditioned: a triangle tilted by an angle a out of a face plane has its cut
 determined to rounding / a.) Flat tetrahedra
 (``|6 V| <= TET_VOLUME_RTOL * h^3``, h the longest edge) and zero-area triangles give an empty
 intersection.
+
+Every kernel here is compiled with ``fastmath=False`` spelt out: numba gives a function without
+its own setting the fast-math flags of the caller it is first compiled for (the contact pair
+kernels fuse multiply-adds), and the clip's sign tests must come out the same whoever calls
+them first (the intersection test and the pair kernels must agree on every pair).
 """
 
 from __future__ import annotations
@@ -87,7 +92,7 @@ SHIFT_TANGENT = (0.3183098861837907, 0.4472135954999579)
 MAX_POLYGON_VERTICES = 8
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _tet_frame(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, p3x, p3y, p3z):
     """6 x signed volume, squared longest edge and the cross products ``e2 x e3``, ``e3 x e1``,
     ``e1 x e2`` (``e_k = x_k - x_0``: det times the barycentric gradients 1 to 3) of a
@@ -131,7 +136,7 @@ def _tet_frame(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, p3x, p3y, p3z):
     return det, h2, c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _tet_gradients(x_tet, grads):
     """Barycentric gradients of a tetrahedron.
 
@@ -163,7 +168,7 @@ def _tet_gradients(x_tet, grads):
     return det
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _edges_and_normal(x_tri):
     """Edges ``a = x1 - x0``, ``b = x2 - x0`` and normal ``n = a x b`` of a triangle, as a
     9-tuple (ax, ay, az, bx, by, bz, nx, ny, nz)."""
@@ -173,7 +178,7 @@ def _edges_and_normal(x_tri):
     )  # fmt: skip
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2):
     """`_edges_and_normal` from the corners' coordinates (scalars)."""
     ax = x1 - x0
@@ -185,7 +190,7 @@ def _edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2):
     return ax, ay, az, bx, by, bz, ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _clip_shift(x_tri):
     """The clip shift of a triangle, as a 3-tuple (zeros for a zero-area triangle):
     ``CLIP_SHIFT / sqrt(|n|) * (n + SHIFT_TANGENT[0] |n| t_1 + SHIFT_TANGENT[1] |n| t_2)``,
@@ -195,7 +200,7 @@ def _clip_shift(x_tri):
     return _shift_of(ax, ay, az, nx, ny, nz)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath=False)
 def _shift_of(ax, ay, az, nx, ny, nz):
     """`_clip_shift` from the triangle's first edge ``a`` and normal ``n`` (scalars, so that
     `_intersect_pairs` runs it on many triangles in one vectorised loop; the divisions are
@@ -215,7 +220,7 @@ def _shift_of(ax, ay, az, nx, ny, nz):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _triangle_rows(x_tri, x_tet, grads, lam):
     """``lam[i, j] = lambda_j(x_tri[i] + shift)`` for the 3 triangle corners, moved by the
     consistent clip shift (CLIP_SHIFT) along the triangle's normal."""
@@ -223,7 +228,7 @@ def _triangle_rows(x_tri, x_tet, grads, lam):
     _shifted_rows(x_tri, x_tet, grads, sx, sy, sz, lam)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _shifted_rows(x_tri, x_tet, grads, sx, sy, sz, lam):
     """`_triangle_rows` with the triangle's clip shift ``(sx, sy, sz)`` given."""
     for i in range(3):
@@ -238,7 +243,7 @@ def _shifted_rows(x_tri, x_tet, grads, sx, sy, sz, lam):
         lam[i, 0] = 1.0 - s
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _snap(lam):
     """Set barycentric values within rounding noise of zero (CLIP_TOL) to exactly zero."""
     for i in range(3):
@@ -248,7 +253,7 @@ def _snap(lam):
                 lam[i, j] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _clip(lam, mu, vlab, elab):
     """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
 
@@ -342,7 +347,7 @@ def _clip(lam, mu, vlab, elab):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _clip_nonempty(lam, buf):
     """Whether `_clip` would return a polygon (n >= 3), without building it.
 
@@ -382,7 +387,7 @@ def _clip_nonempty(lam, buf):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _polygon_area_ratio(mu, n):
     """Area of polygon ``mu[0, :n]`` divided by the area of the parameter simplex."""
     # shoelace in (mu_1, mu_2); the simplex has area 1/2 there
@@ -393,7 +398,7 @@ def _polygon_area_ratio(mu, n):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _triangle_area2(x_tri):
     """Twice the triangle area (length^2), 0.0 below TRI_AREA_RTOL."""
     ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(x_tri)
@@ -403,7 +408,7 @@ def _triangle_area2(x_tri):
     return _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz):
     """`_triangle_area2` from the edges ``a``, ``b``, ``c = x2 - x1`` and normal (scalars)."""
     a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
@@ -413,7 +418,7 @@ def _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz):
     return a2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _intersection_polygon(x_tri, x_tet, mu, vlab, elab):
     """Clip one pair; returns n (polygon in ``mu[0, :n]``, labels in ``vlab[0, :n]``)."""
     grads = np.empty((4, 3), dtype=FLOAT)
@@ -436,7 +441,7 @@ _BLOCK = 64
 _ROW = tuple(np.uint64(r * _BLOCK) for r in range(34))
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _snapped_row_of(dx, dy, dz, g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z):
     """One corner's row of `_shifted_rows` (``d`` its shifted offset from the tetrahedron's
     vertex 0, ``g`` the gradients of lambda 1 to 3), snapped as `_snap`; scalars in and out."""
@@ -453,7 +458,7 @@ def _snapped_row_of(dx, dy, dz, g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z):
     )
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", fastmath=False)
 def _decide_block(w, m):
     """The intersection test of `_intersect_pairs` on the first m pairs of a work block ``w``,
     up to the clip: 0 (empty: zero-area triangle, flat tetrahedron or a separating face plane),
@@ -536,7 +541,7 @@ def _decide_block(w, m):
         w[_ROW[33] + q] = decided if (valid & (separating >= 0.0)) else 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     """Intersection test for many pairs: ``out[p] = True`` where the polygon is non-empty.
 
@@ -588,7 +593,7 @@ def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
     return count
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _axis_gap(xs, xt, nx, ny, nz):
     """Gap between the projections of triangle ``xs`` and tetrahedron ``xt`` on the axis n
     (length times |n|; negative when the projections overlap)."""
@@ -607,7 +612,7 @@ def _axis_gap(xs, xt, nx, ny, nz):
     return max(k_lo - t_hi, t_lo - k_hi)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _near_pairs(x, tri, tet, pair_tri, pair_tet, gap):
     """The pairs that no separating axis holds more than ``gap`` apart (conservative).
 
@@ -725,6 +730,6 @@ def clip_shift(x_tri: np.ndarray) -> np.ndarray:
     return np.array(_clip_shift_tuple(x_tri), dtype=FLOAT)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False)
 def _clip_shift_tuple(x_tri):
     return _clip_shift(x_tri)
