@@ -55,10 +55,10 @@ _ONE_TRI = np.array([[0, 1, 2]], dtype=INDEX)
 #: coefficients are barycentric values of order one, so this only catches exact parallelism).
 _PARALLEL_TOL = 1e-100
 #: Floating-point licence of the pair kernels: "contract" lets LLVM fuse a multiplication and
-#: an addition into one fused multiply-add (one rounding instead of two); the Hessian pass takes
-#: about 0.81 of its time without it (docs/kernels.md). No other fast-math licence: NaN and inf
-#: propagate and sums keep their order. The clip (geometry/clip.py), whose signs decide which
-#: pairs intersect, is compiled without it.
+#: an addition into one fused multiply-add (one rounding instead of two); with it the Hessian
+#: pass takes about 0.81 of the time it takes without (docs/kernels.md). No other fast-math
+#: licence: NaN and inf propagate and sums keep their order. The clip (geometry/clip.py), whose
+#: signs decide which pairs intersect, is compiled without it.
 _FMA = {"contract"}
 
 
