@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from fenics_matdepth.contact.kernels import (
     _area_pairs,
+    _area_pairs_augmented,
     _area_pairs_into,
     _clip_shift_jacobian,
     _collocation_pairs,
@@ -510,3 +511,41 @@ def test_batch_drivers_match_single_pairs():
         assert e_c[p] == e1
         np.testing.assert_array_equal(g_c[p], g1)
         np.testing.assert_array_equal(h_c[p], h1)
+
+
+def test_pairs_of_one_triangle_reuse_its_quantities_exactly():
+    """The pair loops compute what depends on the triangle alone (its area's derivatives, the
+    clip shift's Jacobian) once for consecutive pairs of one triangle: grouped by triangle,
+    as the broad phase delivers them, every pair's energy, gradient and Hessian are bit for bit
+    those of the same pairs in an order where no two consecutive pairs share a triangle, and
+    of each pair on its own; for the plain and the augmented-Lagrangian drivers."""
+    rng = np.random.default_rng(11)
+    nv = 60
+    x = rng.normal(size=(nv, 3))
+    depth = rng.uniform(size=nv)
+    ntri, ntet = 6, 40
+    tri = np.array([rng.choice(nv, 3, replace=False) for _ in range(ntri)])
+    tet = np.array([rng.choice(nv, 4, replace=False) for _ in range(ntet)])
+    pair_tri = np.repeat(np.arange(ntri), ntet)  # grouped: 40 pairs a triangle
+    pair_tet = np.tile(np.arange(ntet), ntri)
+    mixed = np.arange(pair_tri.size).reshape(ntri, ntet).T.ravel()  # triangles alternate
+    assert np.all(np.diff(pair_tri[mixed]) != 0)
+    pressure = rng.uniform(size=nv)
+    for run in (
+        lambda pt, pk: _area_pairs(x, depth, tri, tet, pt, pk, EPS, True, True),
+        lambda pt, pk: _area_pairs_augmented(
+            x, depth, tri, tet, pt, pk, EPS, pressure, 0.0, True, True
+        ),
+    ):
+        grouped = run(pair_tri, pair_tet)
+        alone = run(pair_tri[mixed], pair_tet[mixed])
+        for a, b in zip(grouped, alone, strict=True):
+            np.testing.assert_array_equal(a[mixed], b)
+        assert np.count_nonzero(grouped[0]) > 3 * ntri  # several contributing pairs a triangle
+    energy, grad, hess = _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
+    for p in np.flatnonzero(energy)[::5]:
+        k = tet[pair_tet[p]]
+        e1, g1, h1 = pair_energy(x[tri[pair_tri[p]]], x[k], depth[k], EPS)
+        assert energy[p] == e1
+        np.testing.assert_array_equal(grad[p], g1)
+        np.testing.assert_array_equal(hess[p], h1)

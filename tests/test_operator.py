@@ -300,6 +300,38 @@ def test_summed_passes_match_per_pair_arrays():
     A.destroy()
 
 
+def test_coupling_positions_of_grouped_pairs_in_an_asymmetric_pattern():
+    """The pattern positions (searched for the couplings (a, b) with a <= b only, (b, a) from
+    the transpose's index, a triangle's own couplings copied from the pair before when it is
+    the same triangle) equal a search of the whole pattern for every coupling, and the count
+    of those missing is theirs; on a pattern lacking some couplings, some of them without
+    their transpose, and a triangle that comes back after another."""
+    from fenics_matdepth.contact.kernels import _coupling_positions, _key_rows, _transposed_keys
+
+    rng = np.random.default_rng(5)
+    nv = 30
+    tri = np.array([rng.choice(nv, 3, replace=False) for _ in range(5)])
+    tet = np.array([rng.choice(nv, 4, replace=False) for _ in range(12)])
+    pair_tri = np.array([0, 0, 0, 1, 1, 2, 0, 0, 3, 4, 4, 4])
+    verts = np.hstack((tri[pair_tri], tet[rng.integers(0, 12, size=pair_tri.size)]))
+    every = np.unique((verts[:, :, None] * nv + verts[:, None, :]).ravel())
+    keys = np.sort(rng.choice(every, size=int(0.8 * every.size), replace=False))
+    rows = _key_rows(keys, nv)
+    transposed = _transposed_keys(keys, rows, nv)
+    swapped = (keys % nv) * nv + keys // nv
+    at = np.minimum(np.searchsorted(keys, swapped), keys.size - 1)
+    np.testing.assert_array_equal(transposed, np.where(keys[at] == swapped, at, -1))
+    assert np.count_nonzero(transposed < 0) > 0
+
+    pos = np.empty((verts.shape[0], 7, 7), dtype=np.int64)
+    missing = _coupling_positions(keys, rows, nv, verts, transposed, pos)
+    wanted = verts[:, :, None] * nv + verts[:, None, :]
+    at = np.minimum(np.searchsorted(keys, wanted), keys.size - 1)
+    found = keys[at] == wanted
+    np.testing.assert_array_equal(pos, np.where(found, at, -1))
+    assert missing == np.count_nonzero(~found) > 0
+
+
 def test_couplings_outside_the_pattern():
     """The pattern positions of the pairs' couplings (a search within each vertex's row) equal
     a search of the whole pattern; after the upper box slides further than the pattern's

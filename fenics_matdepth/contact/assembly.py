@@ -21,6 +21,7 @@ from fenics_matdepth.contact.kernels import (
     _blocks_to_csr,
     _coupling_positions,
     _key_rows,
+    _transposed_keys,
 )
 from fenics_matdepth.contact.surface import ContactSurface
 
@@ -37,7 +38,12 @@ __all__ = [
     "insert_blocks",
     "owned_dirichlet_dofs",
     "pair_dofs",
+    "transposed_keys",
 ]
+
+
+#: PETSc's index type, for numba to write indices in
+_PETSC_INT = np.empty(0, dtype=PETSc.IntType)
 
 
 def global_dofs(surface: ContactSurface, held_dofs: np.ndarray) -> np.ndarray:
@@ -109,8 +115,22 @@ def held_keys(surface: ContactSurface, keys: np.ndarray) -> np.ndarray:
     return np.unique(hi[ok] * surface.num_held + hj[ok])
 
 
+def transposed_keys(surface: ContactSurface, keys: np.ndarray) -> np.ndarray:
+    """The index in ``keys`` of each coupling's transpose (-1 where the pattern lacks it).
+
+    Args:
+        surface: what the rank holds.
+        keys: sorted held-numbered coupling keys of the pattern (:func:`held_keys`).
+    """
+    nh = surface.num_held
+    return _transposed_keys(keys, _key_rows(keys, nh), nh)
+
+
 def coupling_positions(
-    surface: ContactSurface, keys: np.ndarray, verts: np.ndarray
+    surface: ContactSurface,
+    keys: np.ndarray,
+    verts: np.ndarray,
+    transposed: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """Where the pairs' vertex couplings lie in the held-numbered pattern ``keys``.
 
@@ -121,14 +141,18 @@ def coupling_positions(
         surface: what the rank holds.
         keys: sorted held-numbered coupling keys of the pattern (:func:`held_keys`).
         verts: (n, m) held vertices of the pairs.
+        transposed: :func:`transposed_keys` of ``keys`` (computed here if not given).
 
     Returns:
         ``(pos, missing)``: (n, m, m) index in ``keys`` of each coupling (-1 outside the
         pattern), and the number of couplings outside it.
     """
     nh = surface.num_held
+    rows = _key_rows(keys, nh)
+    if transposed is None:
+        transposed = _transposed_keys(keys, rows, nh)
     pos = np.empty((verts.shape[0], verts.shape[1], verts.shape[1]), dtype=INDEX)
-    missing = _coupling_positions(keys, _key_rows(keys, nh), nh, verts, pos)
+    missing = _coupling_positions(keys, rows, nh, verts, transposed, pos)
     return pos, int(missing)
 
 
@@ -174,15 +198,11 @@ def insert_blocks(
         blocks: (nk, 3, 3) summed blocks, Dirichlet rows and columns already left out.
         touched: (nk,) whether a pair reached each key (only those are inserted).
     """
-    rows, indptr, cols, vals = _blocks_to_csr(keys, surface.num_held, blocks, touched)
+    rows, indptr, cols, vals = _blocks_to_csr(
+        keys, surface.num_held, blocks, touched, surface.global_vertex, _PETSC_INT
+    )
     if rows.size:
-        A.setValuesIJV(
-            indptr.astype(PETSc.IntType),
-            global_dofs(surface, cols).astype(PETSc.IntType),
-            vals,
-            addv=PETSc.InsertMode.ADD_VALUES,
-            rowmap=global_dofs(surface, rows).astype(PETSc.IntType),
-        )
+        A.setValuesIJV(indptr, cols, vals, addv=PETSc.InsertMode.ADD_VALUES, rowmap=rows)
 
 
 def create_matrix(

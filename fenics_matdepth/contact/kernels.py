@@ -88,6 +88,9 @@ def _area_work():
         np.empty(_NV, dtype=np.int64),  # 19 number of live columns per vertex
         np.empty((3, 9), dtype=FLOAT),  # 20 vectors of an edge integrand's Hessian; scratch
         np.empty((3, 9), dtype=FLOAT),  # 21 d (clip shift) / d x_tri
+        # 22 the triangle cache: [this pair's triangle (-1: unknown), the triangle whose
+        # quantities 15, 16, 18 and 21 hold, what they hold (1: to the gradient, 2: and d2 A)]
+        np.full(3, -1, dtype=np.int64),
     )
 
 
@@ -370,6 +373,34 @@ def _shift_rows(g, ds):
         g[c] += g0 * ds[0, c] + g1 * ds[1, c] + g2 * ds[2, c]
 
 
+@njit(cache=True, fastmath=_FMA)
+def _area_hessian(nx, ny, nz, inv_n, dn, ga, zv, ha):
+    """``ha = d2 A / d x2`` (9 x 9) of a triangle of normal n = (nx, ny, nz) (``inv_n = 1 /
+    |n|``), from ``dn`` and ``ga = d A / d x`` (`_area_pair`); ``zv`` (>= 3 x 3) is scratch.
+
+    d2 A = (dn . dn + n . d2n) / (2|n|) - (n . dn)^2 / (2 |n|^3); d E_i / d x_m = +1 if
+    m = i - 1, -1 if m = i + 1, and n . (e_b x e_a) = zv[a, b] (the cross-product matrix of n).
+    """
+    zv[0, 0] = 0.0
+    zv[0, 1] = -nz
+    zv[0, 2] = ny
+    zv[1, 0] = nz
+    zv[1, 1] = 0.0
+    zv[1, 2] = -nx
+    zv[2, 0] = -ny
+    zv[2, 1] = nx
+    zv[2, 2] = 0.0
+    for i in range(3):
+        for m in range(3):
+            sgn = 0.0 if m == i else (1.0 if m == (i + 2) % 3 else -1.0)
+            for a in range(3):
+                r = 3 * i + a
+                for b in range(3):
+                    c = 3 * m + b
+                    val = dn[r, 0] * dn[c, 0] + dn[r, 1] * dn[c, 1] + dn[r, 2] * dn[c, 2]
+                    ha[r, c] = (0.5 * (val + sgn * zv[a, b]) - 2.0 * ga[r] * ga[c]) * inv_n
+
+
 # A function of its own, called from the pair loops, not inlined there (inline="always"):
 # numba's IR inlining of this large kernel made the first run's compilation about three
 # times longer, for no measurable gain in speed (docs/solvers.md, start-up). The same holds
@@ -434,6 +465,7 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         ncol,
         zv,
         ds,
+        tri_state,
     ) = work
     # a contributing pair writes every entry of its outputs; the others are zeroed here
     a2 = _triangle_area2(xs)
@@ -594,27 +626,33 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         xs[2, 0] - xs[0, 0]
     )
     inv_n = 1.0 / a2
-    for i in range(3):
-        im = (i + 2) % 3
-        ip = (i + 1) % 3
-        ex = xs[im, 0] - xs[ip, 0]
-        ey = xs[im, 1] - xs[ip, 1]
-        ez = xs[im, 2] - xs[ip, 2]
-        dn[3 * i + 0, 0] = 0.0
-        dn[3 * i + 0, 1] = ez
-        dn[3 * i + 0, 2] = -ey
-        dn[3 * i + 1, 0] = -ez
-        dn[3 * i + 1, 1] = 0.0
-        dn[3 * i + 1, 2] = ex
-        dn[3 * i + 2, 0] = ey
-        dn[3 * i + 2, 1] = -ex
-        dn[3 * i + 2, 2] = 0.0
-    for r in range(9):
-        ga[r] = 0.5 * (nx * dn[r, 0] + ny * dn[r, 1] + nz * dn[r, 2]) * inv_n
-
+    # What depends on the triangle alone (dn, d A / d x, the clip shift's Jacobian, d2 A) is
+    # computed once for the pairs of one triangle that come one after the other, eight on
+    # average at a flat interface; the caller names the pair's triangle in tri_state[0].
+    fresh = tri_state[0] < 0 or tri_state[1] != tri_state[0]
+    if fresh:
+        for i in range(3):
+            im = (i + 2) % 3
+            ip = (i + 1) % 3
+            ex = xs[im, 0] - xs[ip, 0]
+            ey = xs[im, 1] - xs[ip, 1]
+            ez = xs[im, 2] - xs[ip, 2]
+            dn[3 * i + 0, 0] = 0.0
+            dn[3 * i + 0, 1] = ez
+            dn[3 * i + 0, 2] = -ey
+            dn[3 * i + 1, 0] = -ez
+            dn[3 * i + 1, 1] = 0.0
+            dn[3 * i + 1, 2] = ex
+            dn[3 * i + 2, 0] = ey
+            dn[3 * i + 2, 1] = -ex
+            dn[3 * i + 2, 2] = 0.0
+        for r in range(9):
+            ga[r] = 0.5 * (nx * dn[r, 0] + ny * dn[r, 1] + nz * dn[r, 2]) * inv_n
+        _clip_shift_jacobian(xs, ds)
+        tri_state[1] = tri_state[0]
+        tri_state[2] = 1
     # Phi is evaluated at the shifted corners y_i = x_i + s(x_tri) (the clip shift): its
     # triangle gradient is T^T dPhi/dy with T = dy/dx = I + [ds/dx] for every corner
-    _clip_shift_jacobian(xs, ds)
     _shift_rows(gx, ds)
 
     for c in range(9):
@@ -624,26 +662,9 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
     if not want_hess:
         return energy
 
-    # d2 A: (dn . dn + n . d2n) / (2|n|) - (n . dn)^2 / (2 |n|^3); d E_i / d x_m = +1 if
-    # m = i - 1, -1 if m = i + 1, and n . (e_b x e_a) = zv[a, b] (the cross-product matrix of n)
-    zv[0, 0] = 0.0
-    zv[0, 1] = -nz
-    zv[0, 2] = ny
-    zv[1, 0] = nz
-    zv[1, 1] = 0.0
-    zv[1, 2] = -nx
-    zv[2, 0] = -ny
-    zv[2, 1] = nx
-    zv[2, 2] = 0.0
-    for i in range(3):
-        for m in range(3):
-            sgn = 0.0 if m == i else (1.0 if m == (i + 2) % 3 else -1.0)
-            for a in range(3):
-                r = 3 * i + a
-                for b in range(3):
-                    c = 3 * m + b
-                    val = dn[r, 0] * dn[c, 0] + dn[r, 1] * dn[c, 1] + dn[r, 2] * dn[c, 2]
-                    ha[r, c] = (0.5 * (val + sgn * zv[a, b]) - 2.0 * ga[r] * ga[c]) * inv_n
+    if fresh or tri_state[2] < 2:
+        _area_hessian(nx, ny, nz, inv_n, dn, ga, zv, ha)
+        tri_state[2] = 2
 
     # J^T H_Lam J with J_(ij) = p_i (x) grad_j, p_i = (e_i, -Lam[i, :]) over the 7 vertices:
     # tt = (I (x) grads^T) H_Lam (I (x) grads) over the triangle corners is the triangle block;
@@ -857,6 +878,7 @@ def _area_pairs_core(
         for a in range(3):
             for r in range(3):
                 xs[a, r] = x[tri[pair_tri[p], a], r]
+        work[22][0] = pair_tri[p]
         k = pair_tet[p]
         split = _is_split(tet, k)
         row = m if compact else p
@@ -1212,6 +1234,7 @@ def _area_pairs_augmented(
                 has_pressure = has_pressure or pressure[v] != 0.0
             for r in range(3):
                 xs[a, r] = x[v, r]
+        work[22][0] = pair_tri[p]
         k = pair_tet[p]
         split = _is_split(tet, k)
         _zero_folded(21, want_grad, want_hess, acc_g, acc_h)
@@ -1703,17 +1726,57 @@ def _key_rows(keys, num_vertices):
 
 
 @njit(cache=True, fastmath=_FMA)
-def _coupling_positions(keys, rows, num_vertices, verts, pos):
+def _find_key(keys, lo, hi, key):
+    """Index of ``key`` in the sorted ``keys[lo:hi]`` (binary search), or -1."""
+    end = hi
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < end and keys[lo] == key:
+        return lo
+    return -1
+
+
+@njit(cache=True, fastmath=_FMA)
+def _transposed_keys(keys, rows, num_vertices):
+    """Where each coupling's transpose lies in a fixed pattern.
+
+    Args:
+        keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        rows: (num_vertices + 1,) their row pointers (`_key_rows`).
+        num_vertices: number of vertices of the key numbering.
+
+    Returns:
+        (nk,) the index in ``keys`` of ``(vb, va)`` for each key ``(va, vb)``, -1 where the
+        pattern lacks it (never, for a pattern made of whole pairs, which is symmetric).
+    """
+    out = np.empty(keys.shape[0], dtype=np.int64)
+    for k in range(keys.shape[0]):
+        va = keys[k] // num_vertices
+        vb = keys[k] - va * num_vertices
+        out[k] = _find_key(keys, rows[vb], rows[vb + 1], vb * num_vertices + va)
+    return out
+
+
+@njit(cache=True, fastmath=_FMA)
+def _coupling_positions(keys, rows, num_vertices, verts, transposed, pos):
     """Where each vertex coupling of the pairs lies in a fixed pattern.
 
     A binary search within the row of the coupling's first vertex (a few dozen keys), not
-    over the whole pattern.
+    over the whole pattern, for the couplings (a, b) with a <= b only: (b, a) is the
+    transpose's index (``transposed``). A pair whose contact element (the first
+    ``verts.shape[1] - 4`` vertices) is the previous pair's copies that element's couplings
+    (pairs come grouped by element, eight a triangle on a flat interface).
 
     Args:
         keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
         rows: (num_vertices + 1,) their row pointers (`_key_rows`).
         num_vertices: number of vertices of the key numbering.
         verts: (np, m) vertices of each pair (m = 7 for area pairs, 5 for collocation).
+        transposed: (nk,) `_transposed_keys` of ``keys``.
         pos: (np, m, m) output: ``pos[p, a, b]`` the index in ``keys`` of the coupling
             ``(verts[p, a], verts[p, b])``, -1 where the pattern lacks it.
 
@@ -1721,26 +1784,35 @@ def _coupling_positions(keys, rows, num_vertices, verts, pos):
         The number of couplings not in the pattern.
     """
     nvp = verts.shape[1]
+    lead = nvp - 4
     missing = 0
     for p in range(verts.shape[0]):
+        same = p > 0
+        for a in range(lead):
+            if same and verts[p, a] != verts[p - 1, a]:
+                same = False
         for a in range(nvp):
             va = verts[p, a]
-            lo0 = rows[va]
-            hi0 = rows[va + 1]
-            for b in range(nvp):
-                key = va * num_vertices + verts[p, b]
-                lo = lo0
-                hi = hi0
-                while lo < hi:
-                    mid = (lo + hi) >> 1
-                    if keys[mid] < key:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                if lo < hi0 and keys[lo] == key:
-                    pos[p, a, b] = lo
+            lo = rows[va]
+            hi = rows[va + 1]
+            for b in range(a, nvp):
+                vb = verts[p, b]
+                if same and b < lead:
+                    k = pos[p - 1, a, b]
+                    kt = pos[p - 1, b, a]
                 else:
-                    pos[p, a, b] = -1
+                    k = _find_key(keys, lo, hi, va * num_vertices + vb)
+                    if b == a:
+                        kt = k
+                    elif k >= 0:
+                        kt = transposed[k]
+                    else:
+                        kt = _find_key(keys, rows[vb], rows[vb + 1], vb * num_vertices + va)
+                pos[p, a, b] = k
+                pos[p, b, a] = kt
+                if k < 0:
+                    missing += 1
+                if kt < 0 and b != a:
                     missing += 1
     return missing
 
@@ -1772,17 +1844,20 @@ def _accumulate_vertex_blocks(pos, verts, hess, bc_mask, blocks, touched):
 
 
 @njit(cache=True, fastmath=_FMA)
-def _blocks_to_csr(keys, num_vertices, blocks, touched):
-    """The touched 3 x 3 blocks as a CSR over dof rows, for ``MatSetValuesIJV``.
+def _blocks_to_csr(keys, num_vertices, blocks, touched, global_vertex, int_type):
+    """The touched 3 x 3 blocks as a CSR over global dof rows, for ``MatSetValuesIJV``.
 
     Args:
         keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
         num_vertices: number of vertices of the key numbering.
         blocks, touched: as filled by `_accumulate_vertex_blocks`.
+        global_vertex: (num_vertices,) the global vertex number of each vertex.
+        int_type: an array of the integer type of the outputs' indices (PETSc's).
 
     Returns:
-        ``(rows, indptr, cols, vals)``: global dof rows (``3 va + r``), row pointers into
-        ``cols``/``vals``, global dof columns (sorted within a row) and values.
+        ``(rows, indptr, cols, vals)``: global dof rows (``3 global_vertex[va] + r``), row
+        pointers into ``cols``/``vals``, global dof columns (in key order within a row) and
+        values.
     """
     nk = keys.shape[0]
     n_touched = 0
@@ -1795,9 +1870,9 @@ def _blocks_to_csr(keys, num_vertices, blocks, touched):
             if va != last:
                 n_vrows += 1
                 last = va
-    rows = np.empty(3 * n_vrows, dtype=np.int64)
-    indptr = np.empty(3 * n_vrows + 1, dtype=np.int64)
-    cols = np.empty(9 * n_touched, dtype=np.int64)
+    rows = np.empty(3 * n_vrows, dtype=int_type.dtype)
+    indptr = np.empty(3 * n_vrows + 1, dtype=int_type.dtype)
+    cols = np.empty(9 * n_touched, dtype=int_type.dtype)
     vals = np.empty(9 * n_touched, dtype=FLOAT)
     indptr[0] = 0
     row = 0
@@ -1815,18 +1890,19 @@ def _blocks_to_csr(keys, num_vertices, blocks, touched):
             if touched[end]:
                 g += 1
             end += 1
+        ga = 3 * global_vertex[va]
         for r in range(3):
-            rows[row + r] = 3 * va + r
+            rows[row + r] = ga + r
             indptr[row + r + 1] = start + 3 * g * (r + 1)
         j = 0
         for kk in range(k, end):
             if not touched[kk]:
                 continue
-            vb = keys[kk] % num_vertices
+            gb = 3 * global_vertex[keys[kk] % num_vertices]
             for r in range(3):
                 base = start + 3 * g * r + 3 * j
                 for c in range(3):
-                    cols[base + c] = 3 * vb + c
+                    cols[base + c] = gb + c
                     vals[base + c] = blocks[kk, r, c]
             j += 1
         start += 9 * g

@@ -125,6 +125,7 @@ class ContactOperator:
         self._pair_k = np.empty(0, dtype=INDEX)
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
+        self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         self._pressure_width = 0.0
         # output buffers of the summed passes (`_summed`), reused from state to state
@@ -388,7 +389,13 @@ class ContactOperator:
         if self._held_keys is None:
             keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
             self._held_keys = assembly.held_keys(self.surface, keys)
+            self._held_transposed = assembly.transposed_keys(self.surface, self._held_keys)
         return self._held_keys
+
+    def _pattern_transposed(self) -> np.ndarray:
+        """Where each key of :meth:`_pattern_in_held_numbering` has its transpose."""
+        self._pattern_in_held_numbering()
+        return self._held_transposed
 
     @announces_compilation("the contact Jacobian assembly")
     def add_jacobian(
@@ -441,7 +448,7 @@ class ContactOperator:
         if "positions" not in self._cache:
             verts = self._pair_verts()
             pos, missing = assembly.coupling_positions(
-                self.surface, self._pattern_in_held_numbering(), verts
+                self.surface, self._pattern_in_held_numbering(), verts, self._pattern_transposed()
             )
             self._cache["positions"] = pos
             self._cache["pattern_missing"] = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
