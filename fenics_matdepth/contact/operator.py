@@ -126,6 +126,7 @@ class ContactOperator:
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
+        self._held_refreshes = -1  # the halo build they were made for
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         self._pressure_width = 0.0
         # output buffers of the summed passes (`_summed`), reused from state to state
@@ -173,7 +174,8 @@ class ContactOperator:
         self._u_last = u_owned.copy()
         self.surface.update()
         self._pair_a, self._pair_k = pairs.candidate_pairs(self.surface, self.integration, 0.0)
-        self._held_keys = None
+        if self.surface.refreshes != self._held_refreshes:
+            self._held_keys = None  # a new halo numbers the held vertices anew
         self._cache.clear()
 
     # -- pair contributions ---------------------------------------------------------------
@@ -390,6 +392,7 @@ class ContactOperator:
             keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
             self._held_keys = assembly.held_keys(self.surface, keys)
             self._held_transposed = assembly.transposed_keys(self.surface, self._held_keys)
+            self._held_refreshes = self.surface.refreshes
         return self._held_keys
 
     def _pattern_transposed(self) -> np.ndarray:
