@@ -332,6 +332,49 @@ def test_coupling_positions_of_grouped_pairs_in_an_asymmetric_pattern():
     assert missing == np.count_nonzero(~found) > 0
 
 
+def test_candidate_pairs_serve_later_updates_within_the_skin():
+    """The candidate pairs of a search with the skin serve the updates after it until a held
+    vertex has moved by about half the skin: at every state of a slide in steps of 0.05 to
+    1.2 skins, those whose boxes overlap now are the pairs of a fresh search without skin, and
+    the intersecting pairs are that search's, while fewer searches were made than updates."""
+    from fenics_matdepth.contact import pairs
+    from fenics_matdepth.contact.kernels import _intersecting
+    from fenics_matdepth.geometry.bvh import overlapping_pairs
+
+    comm = MPI.COMM_WORLD
+    _, V, u, op = _setup(comm, "area")
+    skin = op.pair_skin
+    assert skin > 0.0
+    s = op.surface
+    upper = op.body_of_vertex[np.argmax(s.gathered()["X"][:, 2])]
+    n_owned = V.dofmap.index_map.size_local
+    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
+    on_upper = op.body_of_vertex[glob] == upper
+    # scatter the vertices (partition-independent), so that box gaps take every size and not
+    # only the mesh's multiples of its spacing
+    gdof = (3 * glob[:, None] + np.arange(3)).ravel()
+    u.x.array[: 3 * n_owned] += 0.2 * s.mean_edge * np.sin(12.9898 * gdof + 78.233)
+    u.x.scatter_forward()
+    steps = [0.2, 0.3, 0.1, 0.5, 1.2, 0.05, 0.4, 0.45, 0.9, 0.3, 0.25, 0.7]
+    for step in steps:
+        ux = u.x.array[: 3 * n_owned].reshape(-1, 3)
+        ux[on_upper, 0] += step * skin
+        ux[on_upper, 1] -= 0.5 * step * skin
+        u.x.scatter_forward()
+        op.update()
+        fa, fk = pairs.candidate_pairs(s, "area", 0.0)
+        near = overlapping_pairs(s.x, s.tri, s.tets, op._pair_a, op._pair_k)
+        kept = zip(op._pair_a[near].tolist(), op._pair_k[near].tolist(), strict=True)
+        assert set(kept) == set(zip(fa.tolist(), fk.tolist(), strict=True))
+        hit = _intersecting(s.x, s.tri, s.kernel_tets, fa, fk)
+        active = op._intersecting_pairs()
+        got = set(zip(op._pair_a[active].tolist(), op._pair_k[active].tolist(), strict=True))
+        assert got == set(zip(fa[hit].tolist(), fk[hit].tolist(), strict=True))
+        assert comm.allreduce(active.size) > 0
+    searches = comm.allreduce(op.pair_searches)
+    assert comm.size < searches < comm.size * (len(steps) + 1)
+
+
 def test_couplings_outside_the_pattern():
     """The pattern positions of the pairs' couplings (a search within each vertex's row) equal
     a search of the whole pattern; after the upper box slides further than the pattern's

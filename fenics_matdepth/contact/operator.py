@@ -44,9 +44,13 @@ from fenics_matdepth.contact.kernels import (
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
+from fenics_matdepth.geometry.bvh import overlapping_pairs
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
+#: Default skin of the candidate pairs (area integration), in mean boundary edge lengths (see
+#: ``ContactOperator.pair_skin``).
+PAIR_SKIN = 0.1
 _INTEGRATIONS = ("area", "collocation")
 
 
@@ -123,6 +127,16 @@ class ContactOperator:
         self._u_last: np.ndarray | None = None
         self._pair_a = np.empty(0, dtype=INDEX)
         self._pair_k = np.empty(0, dtype=INDEX)
+        #: Skin (L) of the candidate pairs (area integration): the pair search inflates the
+        #: triangle boxes by it and its pairs serve later updates until some held vertex has
+        #: moved by more than about half of it (no pair can then have come into contact
+        #: unseen); 0 searches at every update (as collocation, whose kernel evaluates every
+        #: candidate, always does).
+        self.pair_skin = PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
+        #: number of pair searches so far (the other updates reused the candidate pairs)
+        self.pair_searches = 0
+        self._x_at_search: np.ndarray | None = None  # held coordinates at the last search
+        self._search_refreshes = -1  # the halo build of the last search
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
@@ -173,10 +187,31 @@ class ContactOperator:
             return
         self._u_last = u_owned.copy()
         self.surface.update()
-        self._pair_a, self._pair_k = pairs.candidate_pairs(self.surface, self.integration, 0.0)
+        if self._pair_search_needed():
+            s = self.surface
+            self._pair_a, self._pair_k = pairs.candidate_pairs(s, self.integration, self.pair_skin)
+            self._x_at_search = s.x.copy()
+            self._search_refreshes = s.refreshes
+            self.pair_searches += 1
         if self.surface.refreshes != self._held_refreshes:
             self._held_keys = None  # a new halo numbers the held vertices anew
         self._cache.clear()
+
+    def _pair_search_needed(self) -> bool:
+        """Whether the candidate pairs of the last search may miss a pair whose boxes now
+        overlap: a new halo, no skin, or a held vertex moved by more than 0.45 of the skin
+        since (two boxes that overlap now were then at most twice that apart per axis, within
+        the skin the search inflated the boxes by; the tenth spared covers rounding)."""
+        s = self.surface
+        if (
+            self.pair_skin <= 0.0
+            or self._x_at_search is None
+            or s.refreshes != self._search_refreshes
+            or s.x.shape != self._x_at_search.shape
+        ):
+            return True
+        moved = float(np.abs(s.x - self._x_at_search).max(initial=0.0))
+        return not (moved <= 0.45 * self.pair_skin)
 
     # -- pair contributions ---------------------------------------------------------------
 
@@ -301,9 +336,15 @@ class ContactOperator:
         40k-tetrahedron press)."""
         if "intersecting" not in self._cache:
             s = self.surface
-            self._cache["intersecting"] = _intersecting(
-                s.x, s.tri, s.kernel_tets, self._pair_a, self._pair_k
-            )
+            pa, pk = self._pair_a, self._pair_k
+            if self.pair_skin > 0.0:
+                # the pairs of the last search (boxes inflated by the skin) whose boxes
+                # overlap now: those a search at this state would find (0.3 ms at 192k pairs)
+                near = overlapping_pairs(s.x, s.tri, s.tets, pa, pk)
+                hit = _intersecting(s.x, s.tri, s.kernel_tets, pa[near], pk[near])
+                self._cache["intersecting"] = near[hit]
+            else:
+                self._cache["intersecting"] = _intersecting(s.x, s.tri, s.kernel_tets, pa, pk)
         return self._cache["intersecting"]
 
     def energy(self) -> float:

@@ -45,6 +45,7 @@ __all__ = [
     "AABBTree",
     "element_boxes",
     "exclude_shared_vertex_pairs",
+    "overlapping_pairs",
 ]
 
 #: Maximum number of elements per leaf (few, since leaf tests are cheap and deep trees prune well).
@@ -557,6 +558,47 @@ def exclude_shared_vertex_pairs(
         np.ascontiguousarray(pair_tri, dtype=INDEX),
         np.ascontiguousarray(pair_tet, dtype=INDEX),
     )
+
+
+def overlapping_pairs(
+    points: np.ndarray,
+    tri_cells: np.ndarray,
+    tet_cells: np.ndarray,
+    pair_tri: np.ndarray,
+    pair_tet: np.ndarray,
+) -> np.ndarray:
+    """Which (triangle, tetrahedron) pairs have overlapping boxes now (closed boxes, no margin).
+
+    The test of :meth:`AABBTree.query_boxes` with margin 0 on the same boxes, so that pairs
+    found with a margin and filtered here are exactly those a search without margin finds.
+
+    Args:
+        points: (nv, 3) vertex coordinates (L).
+        tri_cells: (nt, 3) triangle vertex indices.
+        tet_cells: (nk, 4) tetrahedron vertex indices.
+        pair_tri, pair_tet: (m,) the pairs.
+
+    Returns:
+        Indices of the overlapping pairs, in order.
+    """
+    points = _as_points(points)
+    return _overlapping_pairs(
+        _element_boxes(points, np.ascontiguousarray(tri_cells, dtype=INDEX)),
+        _element_boxes(points, np.ascontiguousarray(tet_cells, dtype=INDEX)),
+        np.ascontiguousarray(pair_tri, dtype=INDEX),
+        np.ascontiguousarray(pair_tet, dtype=INDEX),
+    )
+
+
+@njit(cache=True)
+def _overlapping_pairs(tri_box, tet_box, pair_tri, pair_tet):
+    keep = np.empty(pair_tri.shape[0], dtype=np.int64)
+    m = 0
+    for p in range(pair_tri.shape[0]):
+        if _rows_overlap(tri_box, pair_tri[p], tet_box, pair_tet[p], 0.0):
+            keep[m] = p
+            m += 1
+    return keep[:m].copy()
 
 
 class AABBTree:
