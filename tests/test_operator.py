@@ -373,6 +373,12 @@ def test_candidate_pairs_serve_later_updates_within_the_skin():
         assert comm.allreduce(active.size) > 0
     searches = comm.allreduce(op.pair_searches)
     assert comm.size < searches < comm.size * (len(steps) + 1)
+    # a new skin is searched with at once, however little the vertices moved
+    op.pair_skin = 3.0 * skin
+    u.x.array[: 3 * n_owned].reshape(-1, 3)[on_upper, 0] += 0.01 * skin
+    u.x.scatter_forward()
+    op.update()
+    assert comm.allreduce(op.pair_searches) == searches + comm.size
 
 
 def test_couplings_outside_the_pattern():

@@ -137,6 +137,7 @@ class ContactOperator:
         self.pair_searches = 0
         self._x_at_search: np.ndarray | None = None  # held coordinates at the last search
         self._search_refreshes = -1  # the halo build of the last search
+        self._searched_skin = 0.0  # the skin of the last search
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
@@ -192,6 +193,7 @@ class ContactOperator:
             self._pair_a, self._pair_k = pairs.candidate_pairs(s, self.integration, self.pair_skin)
             self._x_at_search = s.x.copy()
             self._search_refreshes = s.refreshes
+            self._searched_skin = self.pair_skin
             self.pair_searches += 1
         if self.surface.refreshes != self._held_refreshes:
             self._held_keys = None  # a new halo numbers the held vertices anew
@@ -199,12 +201,14 @@ class ContactOperator:
 
     def _pair_search_needed(self) -> bool:
         """Whether the candidate pairs of the last search may miss a pair whose boxes now
-        overlap: a new halo, no skin, or a held vertex moved by more than 0.45 of the skin
-        since (two boxes that overlap now were then at most twice that apart per axis, within
-        the skin the search inflated the boxes by; the tenth spared covers rounding)."""
+        overlap: a new halo, no skin or another skin than the search's, or a held vertex moved
+        by more than 0.45 of the skin since (two boxes that overlap now were then at most twice
+        that apart per axis, within the skin the search inflated the boxes by; the tenth
+        spared covers rounding)."""
         s = self.surface
         if (
             self.pair_skin <= 0.0
+            or self.pair_skin != self._searched_skin
             or self._x_at_search is None
             or s.refreshes != self._search_refreshes
             or s.x.shape != self._x_at_search.shape
@@ -337,9 +341,10 @@ class ContactOperator:
         if "intersecting" not in self._cache:
             s = self.surface
             pa, pk = self._pair_a, self._pair_k
-            if self.pair_skin > 0.0:
+            if self._searched_skin > 0.0:
                 # the pairs of the last search (boxes inflated by the skin) whose boxes
-                # overlap now: those a search at this state would find (0.3 ms at 192k pairs)
+                # overlap now: those a search at this state would find (4 to 5.5 ms for 192k
+                # pairs on bench_newton's press, against 34 ms for a search)
                 near = overlapping_pairs(s.x, s.tri, s.tets, pa, pk)
                 hit = _intersecting(s.x, s.tri, s.kernel_tets, pa[near], pk[near])
                 self._cache["intersecting"] = near[hit]
