@@ -127,11 +127,11 @@ class ContactOperator:
         self._u_last: np.ndarray | None = None
         self._pair_a = np.empty(0, dtype=INDEX)
         self._pair_k = np.empty(0, dtype=INDEX)
-        #: Skin (L) of the candidate pairs (area integration): the pair search inflates the
-        #: triangle boxes by it and its pairs serve later updates until some held vertex has
-        #: moved by more than about half of it (no pair can then have come into contact
-        #: unseen); 0 searches at every update (as collocation, whose kernel evaluates every
-        #: candidate, always does).
+        #: The skin of the candidate pairs with area integration, in L. The pair search
+        #: inflates the triangle boxes by it, and its pairs serve later updates until some
+        #: held vertex has moved by more than about half of it (no pair can then have come
+        #: into contact unseen). With 0 the operator searches at every update, as it always
+        #: does with collocation, whose kernel evaluates every candidate.
         self.pair_skin = PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
         #: number of pair searches so far (the other updates reused the candidate pairs)
         self.pair_searches = 0
