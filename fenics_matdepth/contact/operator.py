@@ -211,7 +211,6 @@ class ContactOperator:
             or self.pair_skin != self._searched_skin
             or self._x_at_search is None
             or s.refreshes != self._search_refreshes
-            or s.x.shape != self._x_at_search.shape
         ):
             return True
         moved = float(np.abs(s.x - self._x_at_search).max(initial=0.0))
