@@ -119,6 +119,31 @@ _AMG_OPTIONS = {
     "pc_gamg_threshold": 0.01,
 }
 
+#: PETSc's options key that makes the multiple dot products of a vector (the orthogonalisation
+#: of GMRES) one BLAS gemv, PETSc's default since 3.21. OpenBLAS's gemv sums in an order that
+#: depends on where the vectors lie in memory, which varies from run to run: with it, two runs
+#: of one script (benchmarks/bench_newton.py) parted in the last bits at the first GMRES on a
+#: kept factorisation and ended with 10 124 or 10 126 active pairs. PETSc's own kernel sums in
+#: a fixed order, at the same speed (measured: 0.56 s for 80 products of 5 to 60 vectors of
+#: 300k entries either way). A vector takes the setting in force when it is created, and
+#: copies of it keep it, so the package sets it off when imported (`_fix_summation_order`),
+#: unless it is given (PETSC_OPTIONS, the command line, or PETSc.Options() beforehand).
+MDOT_GEMV_OPTION = "vec_mdot_use_gemv"
+
+
+def _fix_summation_order() -> None:
+    """Make the multiple dot products of the vectors created from now on sum in a fixed order
+    (MDOT_GEMV_OPTION off), unless the option was given: a run then repeats to the bit."""
+    options = PETSc.Options()
+    if not options.hasName(MDOT_GEMV_OPTION):
+        options.setValue(MDOT_GEMV_OPTION, "0")
+    # read once, so that PETSc does not report it as unused at exit in a run without vectors
+    options.getBool(MDOT_GEMV_OPTION)
+
+
+_fix_summation_order()
+
+
 #: An assembled Jacobian counts as symmetric when no entry differs from its transpose's by more
 #: than this fraction of the matrix's infinity norm (rounding leaves about 1e-16); the
 #: problems' default direct solver then factorises it as LDL^T (MUMPS, ``pc_type cholesky``,

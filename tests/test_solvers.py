@@ -315,6 +315,50 @@ def test_a_problem_never_solved_leaves_no_unused_petsc_option(child_env):
     assert "There are no unused options." in printed, printed
 
 
+_PLACED_VECTORS = """
+import ctypes
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+import fenics_matdepth  # noqa: F401
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD: large arrays from the heap, at any 16-byte offset
+values = np.random.default_rng(1).standard_normal((9, 27_783))
+products = set()
+for shift in range(12):
+    libc.malloc(16 * shift + 8)  # kept: the next vectors lie elsewhere
+    template = PETSc.Vec().createMPI(values.shape[1], comm=MPI.COMM_WORLD)
+    x, ys = template.duplicate(), [template.duplicate() for _ in values[1:]]
+    x.array[:] = values[0]
+    for y, v in zip(ys, values[1:]):
+        y.array[:] = v
+    products.add(np.asarray(x.mDot(ys)).tobytes())
+print(len(products))
+"""
+
+
+def test_multiple_dot_products_do_not_depend_on_where_the_vectors_lie(child_env):
+    """GMRES's orthogonalisation (VecMDot) gives the same bits wherever its vectors lie in
+    memory once the package is imported (solvers.MDOT_GEMV_OPTION), so a run repeats to the bit.
+    The same script with PETSc's gemv kernel (the option given) finds several results: the
+    test sees the difference it guards against."""
+    if MPI.COMM_WORLD.rank != 0:
+        return
+
+    def distinct_results(**extra) -> int:
+        env = dict(child_env, MATDEPTH_QUIET_JIT="1", **extra)
+        out = subprocess.run(
+            [sys.executable, "-c", _PLACED_VECTORS], env=env, capture_output=True, text=True,
+            check=True, timeout=600,
+        )  # fmt: skip
+        return int(out.stdout.split()[-1])
+
+    assert distinct_results() == 1
+    # the option given: left as it is, and OpenBLAS's gemv sums by where the vectors lie
+    assert distinct_results(PETSC_OPTIONS=f"-{solvers.MDOT_GEMV_OPTION} 1") > 1
+
+
 def test_convergence_test_stops_a_line_search_without_progress():
     """ContactProblem's convergence test: PETSc's tolerances as SNES holds them, and a stop
     (DIVERGED_LINE_SEARCH) once NO_PROGRESS_ITERATIONS iterations in a row left the residual
