@@ -900,6 +900,22 @@ by_body = {
 }
 
 
+def by_bodies_in(grid) -> dict:
+    """Like ``by_body``, with a key of the bodies that ``grid`` holds only (a close-up shows a
+    few of the nine), each in its colour of the other pictures; adds the cell data it colours
+    by ("body shown": 1, 2, ... over the bodies present) to ``grid``."""
+    tags = np.unique(grid.cell_data["body"])
+    grid.cell_data["body shown"] = np.searchsorted(tags, grid.cell_data["body"]) + 1
+    return {
+        "scalars": "body shown",
+        "cmap": [BODY_COLOURS[tag - 1] for tag in tags],
+        "clim": [0.5, len(tags) + 0.5],
+        "n_colors": len(tags),
+        "annotations": {i + 1.0: leg.BODIES[tag].replace("_", " ") for i, tag in enumerate(tags)},
+        "show_scalar_bar": False,
+    }
+
+
 def by_depth(grid) -> dict:
     """Material depth in 5 to 12 bands of 1, 2 or 5 times a power of ten mm, from 0 to the
     first band edge above the largest depth in ``grid``: the key's labels are round numbers."""
@@ -1016,7 +1032,7 @@ if comm.rank == 0 and pv is not None and bent is not None:
     actors = []
     for i, (look, title) in enumerate(
         (
-            (by_body, f"the fold behind the knee at {reached:.0f} deg: bodies"),
+            (by_bodies_in(fold), f"the fold behind the knee at {reached:.0f} deg: bodies"),
             (by_depth(fold), "material depth; red: skin in self-contact"),
         )
     ):

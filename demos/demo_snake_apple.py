@@ -357,9 +357,10 @@ def render_frame(t: float) -> None:
         plotter.camera.position = view_centre + view_distance * view_direction
         plotter.camera.up = (0.0, 0.0, 1.0)
         plotter.camera.view_angle = view_angle
+        # large enough to read in the row of five frames (snake_apple_row.png, 4000 px wide)
         plotter.add_text(
             f"apple's centre at x = {apple_start + t * (apple_end - apple_start):.0f} mm",
-            position="upper_right", font_size=11, color="black",
+            position="upper_edge", font_size=22, color="black",
         )  # fmt: skip
         frames[style].append(plotter.screenshot(return_img=True))
         plotter.close()
