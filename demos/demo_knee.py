@@ -890,20 +890,13 @@ report(
 # +
 BODY_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#8c564b", "#e377c2", "#7f7f7f",
                 "#bcbd22", "#17becf"]  # fmt: skip
-by_body = {
-    "scalars": "body",
-    "cmap": BODY_COLOURS,
-    "clim": [0.5, len(leg.BODIES) + 0.5],
-    "n_colors": len(leg.BODIES),
-    "annotations": {float(tag): name.replace("_", " ") for tag, name in leg.BODIES.items()},
-    "show_scalar_bar": False,
-}
 
 
-def by_bodies_in(grid) -> dict:
-    """Like ``by_body``, with a key of the bodies that ``grid`` holds only (a close-up shows a
-    few of the nine), each in its colour of the other pictures; adds the cell data it colours
-    by ("body shown": 1, 2, ... over the bodies present) to ``grid``."""
+def by_body(grid) -> dict:
+    """The bodies of ``grid``, each in its colour (BODY_COLOURS, the same in every picture),
+    keyed by name; the key lists the bodies ``grid`` holds only (a close-up shows a few of the
+    nine). Adds the cell data it colours by ("body shown": 1, 2, ... over the bodies present)
+    to ``grid``."""
     tags = np.unique(grid.cell_data["body"])
     grid.cell_data["body shown"] = np.searchsorted(tags, grid.cell_data["body"]) + 1
     return {
@@ -1009,7 +1002,7 @@ if comm.rank == 0 and pv is not None and bent is not None:
     add_title(plotter, f"cut-away at {reached:.0f} deg: material depth")
     plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
     plotter.subplot(0, 2)
-    body_actor = plotter.add_mesh(half, show_edges=True, **by_body)
+    body_actor = plotter.add_mesh(half, show_edges=True, **by_body(half))
     add_title(plotter, "bodies")
     plotter.view_vector((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
     plotter.link_views(views=[1, 2])
@@ -1032,7 +1025,7 @@ if comm.rank == 0 and pv is not None and bent is not None:
     actors = []
     for i, (look, title) in enumerate(
         (
-            (by_bodies_in(fold), f"the fold behind the knee at {reached:.0f} deg: bodies"),
+            (by_body(fold), f"the fold behind the knee at {reached:.0f} deg: bodies"),
             (by_depth(fold), "material depth; red: skin in self-contact"),
         )
     ):
