@@ -28,10 +28,10 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.contact import assembly, pairs
+from fenics_matdepth.contact.checks import check_contact_state
 from fenics_matdepth.contact.kernels import (
     _area_pairs,
     _area_pairs_augmented,
@@ -45,6 +45,7 @@ from fenics_matdepth.contact.kernels import (
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
 from fenics_matdepth.geometry.bvh import overlapping_pairs
+from fenics_matdepth.mesh_checks import check_contact_mesh
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
@@ -150,7 +151,7 @@ class ContactOperator:
         self._blocks = np.empty((0, 3, 3), dtype=FLOAT)
         self._touched = np.empty(0, dtype=bool)
         # the surface holds, until the first update, what its triangles meet at u = 0
-        check_contact_state(self, allow_reference_overlap)
+        check_contact_state(s, allow_reference_overlap)
         self.update()
 
     @property
