@@ -6,7 +6,8 @@ vectors and matrices. It is a thin class over three modules:
 
 * :mod:`fenics_matdepth.contact.surface`: what a rank holds (vertices, tetrahedra, boundary
   triangles, depths, the AABB tree over its tetrahedra) and how it follows ``u``;
-* :mod:`fenics_matdepth.contact.pairs`: candidate pairs and the sparsity-pattern couplings;
+* :mod:`fenics_matdepth.contact.pairs`: candidate pairs (the :class:`PairSearch` kept from
+  one update to the next) and the sparsity-pattern couplings;
 * :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc.
 
 Each rank handles the boundary triangles whose facets it owns, so every (triangle,
@@ -39,19 +40,14 @@ from fenics_matdepth.contact.kernels import (
     _area_pairs_pressure_moments,
     _area_pairs_summed,
     _collocation_pairs,
-    _intersecting,
     _point_depths,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
-from fenics_matdepth.geometry.bvh import overlapping_pairs
 from fenics_matdepth.mesh_checks import check_contact_mesh
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
-#: Default skin of the candidate pairs (area integration), in mean boundary edge lengths (see
-#: ``ContactOperator.pair_skin``).
-PAIR_SKIN = 0.1
 _INTEGRATIONS = ("area", "collocation")
 
 
@@ -126,19 +122,10 @@ class ContactOperator:
         self.margin = s.margin
 
         self._u_last: np.ndarray | None = None
-        self._pair_a = np.empty(0, dtype=INDEX)
-        self._pair_k = np.empty(0, dtype=INDEX)
-        #: The skin of the candidate pairs with area integration, in L. The pair search
-        #: inflates the triangle boxes by it, and its pairs serve later updates until some
-        #: held vertex has moved by more than about half of it (no pair can then have come
-        #: into contact unseen). With 0 the operator searches at every update, as it always
-        #: does with collocation, whose kernel evaluates every candidate.
-        self.pair_skin = PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
-        #: number of pair searches so far (the other updates reused the candidate pairs)
-        self.pair_searches = 0
-        self._x_at_search: np.ndarray | None = None  # held coordinates at the last search
-        self._search_refreshes = -1  # the halo build of the last search
-        self._searched_skin = 0.0  # the skin of the last search
+        #: the candidate pairs and when to search them again (see :attr:`pair_skin`)
+        self.pair_search = pairs.PairSearch(
+            integration, pairs.PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
+        )
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
@@ -168,6 +155,26 @@ class ContactOperator:
         self._penalty = value
         self._cache.clear()  # energies, gradients and Hessians scale with eps
 
+    @property
+    def pair_skin(self) -> float:
+        """The skin of the candidate pairs (L; with area integration one tenth of the mean
+        boundary edge length by default, with collocation 0). The pair search inflates the
+        triangle boxes by it, and its pairs serve later updates until some held vertex has
+        moved by more than about half of it (no pair can then have come into contact unseen).
+        With 0 the operator searches at every update, as it always does with collocation,
+        whose kernel evaluates every candidate. Assignable; the next update searches anew."""
+        return self.pair_search.skin
+
+    @pair_skin.setter
+    def pair_skin(self, value: float) -> None:
+        self.pair_search.skin = value
+
+    @property
+    def pair_searches(self) -> int:
+        """The number of pair searches so far (the other updates reused the candidate
+        pairs)."""
+        return self.pair_search.searches
+
     # -- geometry -------------------------------------------------------------------------
 
     @announces_compilation("the pair search")
@@ -189,33 +196,10 @@ class ContactOperator:
             return
         self._u_last = u_owned.copy()
         self.surface.update()
-        if self._pair_search_needed():
-            s = self.surface
-            self._pair_a, self._pair_k = pairs.candidate_pairs(s, self.integration, self.pair_skin)
-            self._x_at_search = s.x.copy()
-            self._search_refreshes = s.refreshes
-            self._searched_skin = self.pair_skin
-            self.pair_searches += 1
+        self.pair_search.update(self.surface)
         if self.surface.refreshes != self._held_refreshes:
             self._held_keys = None  # a new halo numbers the held vertices anew
         self._cache.clear()
-
-    def _pair_search_needed(self) -> bool:
-        """Whether the candidate pairs of the last search may miss a pair whose boxes now
-        overlap: a new halo, no skin or another skin than the search's, or a held vertex moved
-        by more than 0.45 of the skin since (two boxes that overlap now were then at most twice
-        that apart per axis, within the skin the search inflated the boxes by; the tenth
-        spared covers rounding)."""
-        s = self.surface
-        if (
-            self.pair_skin <= 0.0
-            or self.pair_skin != self._searched_skin
-            or self._x_at_search is None
-            or s.refreshes != self._search_refreshes
-        ):
-            return True
-        moved = float(np.abs(s.x - self._x_at_search).max(initial=0.0))
-        return not (moved <= 0.45 * self.pair_skin)
 
     # -- pair contributions ---------------------------------------------------------------
 
@@ -247,7 +231,7 @@ class ContactOperator:
             active = self._intersecting_pairs()
             if select is not None:
                 active = active[select]
-            pa, pk = self._pair_a[active], self._pair_k[active]
+            pa, pk = self.pair_search.pair_a[active], self.pair_search.pair_k[active]
             if self._pressure is None:
                 return _area_pairs(
                     s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
@@ -259,7 +243,7 @@ class ContactOperator:
                 s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
                 held_pressure, self._pressure_width, want_grad, want_hess,
             )  # fmt: skip
-        pa, pk = self._pair_a, self._pair_k
+        pa, pk = self.pair_search.pair_a, self.pair_search.pair_k
         if select is not None:
             pa, pk = pa[select], pk[select]
         return _collocation_pairs(
@@ -271,13 +255,18 @@ class ContactOperator:
         """The held vertices of the pairs the kernels evaluate ((n, 7) for the intersecting
         area pairs, (n, 5) for every collocation pair), kept until the next :meth:`update`."""
         if "verts" not in self._cache:
-            if self.integration == "area":
-                active = self._intersecting_pairs()
-                pa, pk = self._pair_a[active], self._pair_k[active]
-            else:
-                pa, pk = self._pair_a, self._pair_k
+            pa, pk = self._evaluated_pairs()
             self._cache["verts"] = pairs.pair_vertices(self.surface, self.integration, pa, pk)
         return self._cache["verts"]
+
+    def _evaluated_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The (contact element, tetrahedron) pairs the kernels evaluate: the intersecting
+        candidates with area integration, every candidate with collocation."""
+        search = self.pair_search
+        if self.integration == "area":
+            active = self._intersecting_pairs()
+            return search.pair_a[active], search.pair_k[active]
+        return search.pair_a, search.pair_k
 
     def _sums_fused(self) -> bool:
         """Whether the residual and Jacobian are summed as the pair kernel makes them
@@ -302,8 +291,7 @@ class ContactOperator:
         if not want_hess and "summed_grad" in self._cache:
             return self._cache["summed_grad"]
         s = self.surface
-        active = self._intersecting_pairs()
-        pa, pk = self._pair_a[active], self._pair_k[active]
+        pa, pk = self._evaluated_pairs()
         n_dofs = 3 * s.num_held
         if self._grad_sum.shape[0] != n_dofs:
             self._grad_sum = np.empty(n_dofs, dtype=FLOAT)
@@ -339,17 +327,7 @@ class ContactOperator:
         Hessian (Jacobian) passes at one state share the test (24 ms of 188k candidates on the
         40k-tetrahedron press)."""
         if "intersecting" not in self._cache:
-            s = self.surface
-            pa, pk = self._pair_a, self._pair_k
-            if self._searched_skin > 0.0:
-                # the pairs of the last search (boxes inflated by the skin) whose boxes
-                # overlap now: those a search at this state would find (4 to 5.5 ms for 192k
-                # pairs on bench_newton's press, against 34 ms for a search)
-                near = overlapping_pairs(s.x, s.tri, s.tets, pa, pk)
-                hit = _intersecting(s.x, s.tri, s.kernel_tets, pa[near], pk[near])
-                self._cache["intersecting"] = near[hit]
-            else:
-                self._cache["intersecting"] = _intersecting(s.x, s.tri, s.kernel_tets, pa, pk)
+            self._cache["intersecting"] = self.pair_search.intersecting(self.surface)
         return self._cache["intersecting"]
 
     def energy(self) -> float:
@@ -584,12 +562,12 @@ class ContactOperator:
         active = r["active"]
         s = self.surface
         gmom, amom = _area_pairs_pressure_moments(
-            s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
-            self._pair_k[active],
+            s.x, s.kernel_depth, s.tri, s.kernel_tets, self.pair_search.pair_a[active],
+            self.pair_search.pair_k[active],
         )  # fmt: skip
         # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are
         # the moments
-        verts = s.global_vertex[s.tri[self._pair_a[active]].ravel()]
+        verts = s.global_vertex[s.tri[self.pair_search.pair_a[active]].ravel()]
         n = self.num_vertices
         local = np.vstack(
             (
@@ -678,10 +656,10 @@ class ContactOperator:
         s = self.surface
         if self.integration == "area":
             active = r["active"]
-            pair_a, pair_k = self._pair_a[active], self._pair_k[active]
+            pair_a, pair_k = self.pair_search.pair_a[active], self.pair_search.pair_k[active]
             g = _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
         else:
-            pair_a, pair_k = self._pair_a, self._pair_k
+            pair_a, pair_k = self.pair_search.pair_a, self.pair_search.pair_k
             w = s.weight[s.nodes[pair_a]]
             g = np.sqrt(2.0 * r["energy"] / (self.penalty * w))
         return g, pair_a, pair_k
@@ -765,7 +743,7 @@ class ContactOperator:
             "boundary_adjacent_tets": self.depth_deficiency.boundary_adjacent,
             "deficient_fraction": self.depth_deficiency.fraction,
             "split_tets": self.num_split_tets,
-            "candidate_pairs": self.comm.allreduce(int(self._pair_a.size)),
+            "candidate_pairs": self.comm.allreduce(int(self.pair_search.pair_a.size)),
             "active_pairs": self.comm.allreduce(int(np.count_nonzero(r["energy"] > 0.0))),
             "energy": self.energy(),
             "max_penetration": self.max_penetration(),
