@@ -2,13 +2,15 @@
 
 The operator owns the contact geometry of one dolfinx mesh (all bodies in one mesh) and adds
 the exact first and second derivatives of the contact energy into dolfinx-assembled PETSc
-vectors and matrices. It is a thin class over three modules:
+vectors and matrices. It is a thin class over these modules:
 
 * :mod:`fenics_matdepth.contact.surface`: what a rank holds (vertices, tetrahedra, boundary
   triangles, depths, the AABB tree over its tetrahedra) and how it follows ``u``;
 * :mod:`fenics_matdepth.contact.pairs`: candidate pairs (the :class:`PairSearch` kept from
   one update to the next) and the sparsity-pattern couplings;
-* :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc.
+* :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc;
+* :mod:`fenics_matdepth.contact.diagnostics`: penetration, forces and pressures of the state;
+* :mod:`fenics_matdepth.contact.checks`: the checks of a new operator's state.
 
 Each rank handles the boundary triangles whose facets it owns, so every (triangle,
 tetrahedron) pair is evaluated once across the ranks; contributions to dofs owned by other
@@ -31,16 +33,13 @@ import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
-from fenics_matdepth.contact import assembly, pairs
+from fenics_matdepth.contact import assembly, diagnostics, pairs
 from fenics_matdepth.contact.checks import check_contact_state
 from fenics_matdepth.contact.kernels import (
     _area_pairs,
     _area_pairs_augmented,
-    _area_pairs_max_depth,
-    _area_pairs_pressure_moments,
     _area_pairs_summed,
     _collocation_pairs,
-    _point_depths,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
@@ -558,26 +557,11 @@ class ContactOperator:
         polygon of the boundary triangles around vertex i (``mu_i`` its hat function on the
         triangle), at the last update: the Uzawa update's data (collective; global vertex
         numbering, the same on every rank)."""
-        r = self._evaluate(False, False)
-        active = r["active"]
-        s = self.surface
-        gmom, amom = _area_pairs_pressure_moments(
-            s.x, s.kernel_depth, s.tri, s.kernel_tets, self.pair_search.pair_a[active],
-            self.pair_search.pair_k[active],
-        )  # fmt: skip
-        # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are
-        # the moments
-        verts = s.global_vertex[s.tri[self.pair_search.pair_a[active]].ravel()]
-        n = self.num_vertices
-        local = np.vstack(
-            (
-                np.bincount(verts, weights=gmom.ravel(), minlength=n),
-                np.bincount(verts, weights=amom.ravel(), minlength=n),
-            )
+        active = self._evaluate(False, False)["active"]
+        search = self.pair_search
+        return diagnostics.pressure_moments(
+            self.surface, search.pair_a[active], search.pair_k[active]
         )
-        total = np.empty_like(local)
-        self.comm.Allreduce(local, total, op=MPI.SUM)
-        return total[0], total[1]
 
     def peak_pressure(self) -> np.ndarray:
         """Per vertex, the largest contact pressure at the deepest point of a penetrating
@@ -587,16 +571,9 @@ class ContactOperator:
         penetrates (collective; global vertex numbering, the same on every rank). The update of
         the quadratic pressure term (area integration)."""
         g, pair_a, _ = self._pair_depths()
-        s = self.surface
-        verts = s.global_vertex[s.tri[pair_a]]
-        stiffness = np.full(g.shape, self.penalty)
-        if self._pressure is not None and self._pressure_width > 0.0:
-            stiffness += self._pressure[verts].mean(axis=1) / self._pressure_width
-        peak = np.zeros(self.num_vertices)
-        for c in range(3):
-            np.maximum.at(peak, verts[:, c], stiffness * g)
-        self.comm.Allreduce(MPI.IN_PLACE, peak, op=MPI.MAX)
-        return peak
+        return diagnostics.peak_pressure(
+            self.surface, g, pair_a, self.penalty, self._pressure, self._pressure_width
+        )
 
     # -- diagnostics ------------------------------------------------------------------------
 
@@ -607,9 +584,7 @@ class ContactOperator:
         the maximum of ``g_K(x_a)`` over the boundary vertices inside a tetrahedron
         (collective).
         """
-        g = self._pair_depths()[0]
-        local = float(g.max()) if g.size else 0.0
-        return self.comm.allreduce(local, op=MPI.MAX)
+        return diagnostics.max_penetration(self.surface, self._pair_depths()[0])
 
     def vertex_penetration(self) -> np.ndarray:
         """Material depth reached by each boundary vertex at the last update (collective).
@@ -630,38 +605,16 @@ class ContactOperator:
         Returns:
             (num_vertices,) depths (L) in the global vertex numbering, the same on every rank.
         """
-        s = self.surface
-        local = np.zeros(self.num_vertices, dtype=FLOAT)
-        # the boundary vertices of this rank's contact elements: the halo holds every
-        # tetrahedron near them
-        verts = np.unique(s.tri) if self.integration == "area" else s.nodes
-        if verts.size and s.tree is not None:
-            points = np.ascontiguousarray(s.x[verts])
-            # a hair of margin: a point on a tetrahedron's face stays a candidate whatever
-            # the rounding of the boxes
-            qa, qk = s.tree.query_boxes(points, points, margin=1e-12 * s.mean_edge)
-            keep = np.all(s.tets[qk] != verts[qa, None], axis=1)
-            qa, qk = qa[keep], qk[keep]
-            g = _point_depths(s.x, s.kernel_depth, s.kernel_tets, points, qa, qk)
-            np.maximum.at(local, s.global_vertex[verts[qa]], g)
-        out = np.empty_like(local)
-        self.comm.Allreduce(local, out, op=MPI.MAX)
-        return out
+        return diagnostics.vertex_penetration(self.surface, self.integration)
 
     def _pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """This rank's pairs with their deepest material depth at the last update: ``(g,
-        pair_a, pair_k)`` (area integration: the active pairs, g over each polygon;
-        collocation: every pair, g at its vertex)."""
-        r = self._evaluate(False, False)
-        s = self.surface
-        if self.integration == "area":
-            active = r["active"]
-            pair_a, pair_k = self.pair_search.pair_a[active], self.pair_search.pair_k[active]
-            g = _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
-        else:
-            pair_a, pair_k = self.pair_search.pair_a, self.pair_search.pair_k
-            w = s.weight[s.nodes[pair_a]]
-            g = np.sqrt(2.0 * r["energy"] / (self.penalty * w))
+        """This rank's evaluated pairs with their deepest material depth at the last update:
+        ``(g, pair_a, pair_k)`` (see :func:`diagnostics.pair_depths`)."""
+        energy = self._evaluate(False, False)["energy"]
+        pair_a, pair_k = self._evaluated_pairs()
+        g = diagnostics.pair_depths(
+            self.surface, self.integration, self.penalty, pair_a, pair_k, energy
+        )
         return g, pair_a, pair_k
 
     def deepest_contact(self) -> dict[str, typing.Any] | None:
@@ -679,31 +632,7 @@ class ContactOperator:
           to judge the depth by (L; None for collocation).
         """
         g, pair_a, pair_k = self._pair_depths()
-        s = self.surface
-        best = (0.0, None)
-        if g.size and g.max() > 0.0:
-            p = int(np.argmax(g))
-            if self.integration == "area":
-                surf = s.tri[pair_a[p]]
-                edges = s.X[surf[[1, 2, 0]]] - s.X[surf]
-                local_h = float(np.linalg.norm(edges, axis=1).mean())
-            else:
-                surf, local_h = s.nodes[pair_a[p]][None], None
-            tet = s.tets[pair_k[p], :4]
-            best = (
-                float(g[p]),
-                {
-                    "depth": float(g[p]),
-                    "surface_vertices": s.global_vertex[surf].tolist(),
-                    "tetrahedron_vertices": s.global_vertex[tet].tolist(),
-                    "surface_reference": s.X[surf].mean(axis=0).tolist(),
-                    "tetrahedron_reference": s.X[tet].mean(axis=0).tolist(),
-                    "surface_position": s.x[surf].mean(axis=0).tolist(),
-                    "local_h": local_h,
-                },
-            )
-        # the deepest over the ranks, the lowest rank's on a tie
-        return max(self.comm.allgather(best), key=lambda b: b[0])[1]
+        return diagnostics.deepest_contact(self.surface, self.integration, g, pair_a, pair_k)
 
     def force_resultants(self) -> np.ndarray:
         """Net contact force on each body, ``(num_bodies, 3)`` (force units; collective).
@@ -713,13 +642,7 @@ class ContactOperator:
         self-contact contributes nothing to its body's resultant.
         """
         r = self._evaluate(True, False)
-        verts = r["verts"]
-        out = np.zeros((self.num_bodies, 3), dtype=FLOAT)
-        if verts.size:
-            body = np.repeat(self.surface.body[verts.ravel()], 3)
-            comp = np.tile(np.arange(3), verts.size)
-            np.add.at(out, (body, comp), -r["grad"].ravel())
-        return self.comm.allreduce(out)
+        return diagnostics.force_resultants(self.surface, r["verts"], r["grad"])
 
     def diagnostics(self) -> dict[str, typing.Any]:
         """Contact state at the last update (collective).
