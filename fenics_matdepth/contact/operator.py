@@ -8,6 +8,7 @@ vectors and matrices. It is a thin class over these modules:
   triangles, depths, the AABB tree over its tetrahedra) and how it follows ``u``;
 * :mod:`fenics_matdepth.contact.pairs`: candidate pairs (the :class:`PairSearch` kept from
   one update to the next) and the sparsity-pattern couplings;
+* :mod:`fenics_matdepth.contact.evaluation`: the pair kernels over the evaluated pairs;
 * :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc;
 * :mod:`fenics_matdepth.contact.diagnostics`: penetration, forces and pressures of the state;
 * :mod:`fenics_matdepth.contact.checks`: the checks of a new operator's state.
@@ -33,14 +34,8 @@ import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
-from fenics_matdepth.contact import assembly, diagnostics, pairs
+from fenics_matdepth.contact import assembly, diagnostics, evaluation, pairs
 from fenics_matdepth.contact.checks import check_contact_state
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_augmented,
-    _area_pairs_summed,
-    _collocation_pairs,
-)
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
 from fenics_matdepth.mesh_checks import check_contact_mesh
@@ -131,11 +126,8 @@ class ContactOperator:
         self._held_refreshes = -1  # the halo build they were made for
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         self._pressure_width = 0.0
-        # output buffers of the summed passes (`_summed`), reused from state to state
-        self._grad_sum = np.empty(0, dtype=FLOAT)
-        self._reached = np.empty(0, dtype=bool)
-        self._blocks = np.empty((0, 3, 3), dtype=FLOAT)
-        self._touched = np.empty(0, dtype=bool)
+        # the fused passes (`_summed`), with output buffers reused from state to state
+        self._summed_pass = evaluation.SummedPass()
         # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(s, allow_reference_overlap)
         self.update()
@@ -223,31 +215,12 @@ class ContactOperator:
         """The pair kernel's (energy, gradient, Hessian) arrays of the pairs `_pair_verts`
         lists (the intersecting area pairs, every collocation pair), or of its rows
         ``select``; not kept."""
-        s = self.surface
-        if self.integration == "area":
-            # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
-            # still comes out over its 7 original vertices
-            active = self._intersecting_pairs()
-            if select is not None:
-                active = active[select]
-            pa, pk = self.pair_search.pair_a[active], self.pair_search.pair_k[active]
-            if self._pressure is None:
-                return _area_pairs(
-                    s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
-                    want_grad, want_hess,
-                )  # fmt: skip
-            # the pressures of the held vertices (the numbering changes with the halo)
-            held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
-            return _area_pairs_augmented(
-                s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
-                held_pressure, self._pressure_width, want_grad, want_hess,
-            )  # fmt: skip
-        pa, pk = self.pair_search.pair_a, self.pair_search.pair_k
+        pa, pk = self._evaluated_pairs()
         if select is not None:
             pa, pk = pa[select], pk[select]
-        return _collocation_pairs(
-            s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[pa], pk, self.penalty,
-            want_grad, want_hess,
+        return evaluation.pair_arrays(
+            self.surface, self.integration, pa, pk, self.penalty, self._pressure,
+            self._pressure_width, want_grad, want_hess,
         )  # fmt: skip
 
     def _pair_verts(self) -> np.ndarray:
@@ -276,47 +249,19 @@ class ContactOperator:
     @announces_compilation("the contact pair integrals")
     def _summed(self, want_hess: bool) -> dict[str, np.ndarray]:
         """The pairs' energies, their gradient summed per held dof and, with ``want_hess``,
-        their Hessians summed into the pattern's 3 x 3 blocks (``kernels._area_pairs_summed``),
-        kept until the next :meth:`update` (a Hessian pass serves a gradient request).
-
-        The sums are those of :func:`assembly.gradient_array` and
-        :func:`assembly.add_jacobian_blocks` on `_evaluate`'s arrays, in the same order, but
-        the (n, 21, 21) Hessians (36 MB on 10k pairs) are never written: each chunk of pairs is
-        summed while in the cache. The returned arrays are the operator's buffers, valid until
-        the next pass.
-        """
+        their Hessians summed into the pattern's 3 x 3 blocks (:class:`evaluation.SummedPass`),
+        kept until the next :meth:`update` (a Hessian pass serves a gradient request). The
+        returned arrays are the operator's buffers, valid until the next pass."""
         if "summed_hess" in self._cache:
             return self._cache["summed_hess"]
         if not want_hess and "summed_grad" in self._cache:
             return self._cache["summed_grad"]
-        s = self.surface
         pa, pk = self._evaluated_pairs()
-        n_dofs = 3 * s.num_held
-        if self._grad_sum.shape[0] != n_dofs:
-            self._grad_sum = np.empty(n_dofs, dtype=FLOAT)
-            self._reached = np.empty(n_dofs, dtype=bool)
-        self._grad_sum.fill(0.0)
-        self._reached.fill(False)
+        pos = keys = None
         if want_hess:
             pos = self._coupling_positions()
             keys = self._pattern_in_held_numbering()
-            nk = keys.size
-            if self._blocks.shape[0] != nk:
-                self._blocks = np.empty((nk, 3, 3), dtype=FLOAT)
-                self._touched = np.empty(nk, dtype=bool)
-            self._blocks.fill(0.0)
-            self._touched.fill(False)
-        else:
-            pos = np.empty((0, 7, 7), dtype=INDEX)
-            keys = np.empty(0, dtype=INDEX)
-        energy = np.empty(pa.size, dtype=FLOAT)
-        _area_pairs_summed(
-            s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty, want_hess, pos,
-            keys, s.bc, energy, self._grad_sum, self._reached, self._blocks, self._touched,
-        )  # fmt: skip
-        out = {"energy": energy, "grad_sum": self._grad_sum, "reached": self._reached}
-        if want_hess:
-            out["blocks"], out["touched"] = self._blocks, self._touched
+        out = self._summed_pass(self.surface, pa, pk, self.penalty, pos, keys)
         self._cache["summed_hess" if want_hess else "summed_grad"] = out
         return out
 
