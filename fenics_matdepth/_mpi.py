@@ -7,7 +7,7 @@ from mpi4py.util.dtlib import from_numpy_dtype
 
 import numpy as np
 
-__all__ = ["allgather_rows"]
+__all__ = ["allgather_rows", "collective_error"]
 
 
 def allgather_rows(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
@@ -26,3 +26,17 @@ def allgather_rows(comm: MPI.Comm, local: np.ndarray) -> np.ndarray:
     out = np.empty(int(counts.sum()), dtype=local.dtype)
     comm.Allgatherv(local.reshape(-1), [out, counts, from_numpy_dtype(local.dtype)])
     return out.reshape((-1, *local.shape[1:]))
+
+
+def collective_error(comm: MPI.Comm, message: str | None, error: type = ValueError) -> None:
+    """Raise ``error`` on every rank if any rank has a ``message`` (the first one found).
+
+    Args:
+        comm: communicator of the ranks that must agree.
+        message: this rank's error message, or None if this rank found nothing wrong.
+        error: exception class raised.
+    """
+    messages = comm.allgather(message)
+    first = next((m for m in messages if m is not None), None)
+    if first is not None:
+        raise error(first)

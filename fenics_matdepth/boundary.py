@@ -2,7 +2,9 @@
 
 What a rank reads off a dolfinx mesh and its P1 spaces: the exterior faces it owns, their
 triangles (as coordinates, gathered, for the distance to the boundary; or as local P1 dofs,
-for contact), and the exact coordinates of the P1 dofs.
+for contact), and the exact coordinates of the P1 dofs; :func:`check_mesh` tells whether a mesh
+is one the package handles (affine tetrahedra in 3D), and :mod:`fenics_matdepth.mesh_checks`
+checks its quality and its boundary on top.
 
 The faces are found by :func:`~fenics_matdepth.boundary.face_table`, from the cells' vertices
 alone, not by DOLFINx's facet entities: creating those (``create_entities(2)``) took 7.3 s of
@@ -21,19 +23,52 @@ import dolfinx
 import numpy as np
 from numba import njit
 
-from fenics_matdepth._checks import check_mesh
-from fenics_matdepth._compat import geometry_dofmap
+from fenics_matdepth._compat import geometry_cmap, geometry_dofmap
 from fenics_matdepth._constants import FLOAT, INDEX
 
 __all__ = [
     "FaceTable",
     "boundary_triangles",
+    "check_mesh",
     "face_table",
     "global_face_vertices",
     "owned_boundary_triangle_dofs",
     "owned_exterior_facets",
     "p1_dof_coordinates",
 ]
+
+
+def check_mesh(mesh: dolfinx.mesh.Mesh) -> None:
+    """The mesh must be a dolfinx mesh of affine (straight-sided) tetrahedra in 3D.
+
+    Raises:
+        TypeError: if ``mesh`` is not a ``dolfinx.mesh.Mesh``.
+        ValueError: for other cells, another geometric dimension or curved geometry.
+    """
+    if not isinstance(mesh, dolfinx.mesh.Mesh):
+        raise TypeError(
+            f"expected a dolfinx.mesh.Mesh, got {type(mesh).__name__}: pass the mesh itself "
+            "(e.g. u.function_space.mesh)"
+        )
+    cell_type = mesh.topology.cell_type
+    if cell_type != dolfinx.mesh.CellType.tetrahedron:
+        raise ValueError(
+            f"material-depth contact needs a tetrahedral mesh, got {cell_type.name} cells: mesh "
+            "the bodies with tetrahedra (e.g. create_box(..., CellType.tetrahedron) or gmsh 3D)"
+        )
+    if mesh.geometry.dim != 3:
+        raise ValueError(
+            f"material-depth contact needs a 3D geometry, got gdim={mesh.geometry.dim}: create "
+            "the mesh with three coordinates per vertex"
+        )
+    degree = geometry_cmap(mesh).degree
+    if degree != 1:
+        raise ValueError(
+            f"material-depth contact needs affine (degree-1) geometry, got a degree-{degree} "
+            "coordinate element: generate the mesh with straight-sided tetrahedra "
+            "(gmsh: model.mesh.setOrder(1))"
+        )
+
 
 #: The vertices of the reference tetrahedron's face i (the face opposite vertex i).
 FACE_VERTICES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)

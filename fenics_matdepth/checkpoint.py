@@ -33,8 +33,8 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._checks import collective_error
 from fenics_matdepth._compat import geometry_dofmap
+from fenics_matdepth._mpi import collective_error
 
 __all__ = ["Checkpoint"]
 

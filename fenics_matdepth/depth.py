@@ -22,15 +22,16 @@ import typing
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._checks import check_contact_mesh, check_mesh
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.boundary import (
     boundary_triangles,
+    check_mesh,
     owned_exterior_facets,
     p1_dof_coordinates,
 )
 from fenics_matdepth.geometry.bvh import AABBTree
+from fenics_matdepth.mesh_checks import check_contact_mesh
 
 __all__ = [
     "DepthDeficiency",
@@ -104,7 +105,8 @@ def distance_to_triangles(points: np.ndarray, triangles: np.ndarray) -> np.ndarr
     return d
 
 
-#: Kept for callers of the former private helper; the checks live in ``_checks``.
+#: Kept for callers of the former private helper; the mesh checks live in ``boundary`` and
+#: ``mesh_checks``.
 _check_mesh = check_mesh
 
 
@@ -123,7 +125,7 @@ def material_depth(mesh: dolfinx.mesh.Mesh) -> dolfinx.fem.Function:
         TypeError: if ``mesh`` is not a dolfinx Mesh.
         ValueError: for non-tetrahedral cells, non-affine geometry, non-finite coordinates,
             degenerate or folded-over tetrahedra, a non-manifold boundary, or a mesh without
-            exterior boundary (see ``fenics_matdepth._checks``); raised on every rank.
+            exterior boundary (see ``fenics_matdepth.mesh_checks``); raised on every rank.
     """
     check_contact_mesh(mesh)
     triangles = boundary_triangles(mesh)

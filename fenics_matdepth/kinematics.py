@@ -1,4 +1,5 @@
-"""Prescribed rigid motions as Dirichlet data: a bone rotated about a joint axis, a clamp turned.
+"""Prescribed rigid motions as Dirichlet data (a bone rotated about a joint axis, a clamp turned)
+and the deformation gradient's determinant per cell.
 
 * :func:`rotation_matrix`: the 3 x 3 matrix of a rotation about an axis (Rodrigues' formula).
 * :func:`rotation_displacement`: the displacement ``u = R (X - c) + c - X`` of reference points
@@ -12,16 +13,32 @@
       fm.solve_load_steps(problem, lambda t: tibia.set_angle(t * np.radians(150)), 50)
 
 Angles are in radians; the sense of rotation is right-handed about ``axis``.
+
+And what the solvers check of a displacement:
+
+* :func:`check_function_space`: ``u`` lives on a P1 vector space of dimension 3;
+* :class:`CellDeterminants`: the smallest ``det F`` over the cells of a P1 displacement, a cheap
+  per-cell evaluation used to reject trial states that invert elements.
 """
 
 from __future__ import annotations
 
 import typing
 
+from mpi4py import MPI
+
 import dolfinx
 import numpy as np
 
-__all__ = ["RigidRotation", "rotation_displacement", "rotation_matrix"]
+from fenics_matdepth.boundary import p1_dof_coordinates
+
+__all__ = [
+    "CellDeterminants",
+    "RigidRotation",
+    "check_function_space",
+    "rotation_displacement",
+    "rotation_matrix",
+]
 
 
 def _unit(axis: typing.Sequence[float]) -> np.ndarray:
@@ -113,3 +130,69 @@ class RigidRotation:
     def __call__(self, angle: float) -> None:
         """Same as :meth:`set_angle` (so the object can be a ``set_load`` callback)."""
         self.set_angle(angle)
+
+
+def check_function_space(u: dolfinx.fem.Function, what: str = "u") -> None:
+    """``u`` must be a Function on a P1 (Lagrange degree 1) vector space of dimension 3.
+
+    Raises:
+        TypeError: if ``u`` is not a dolfinx Function.
+        ValueError: for another element, naming it and the space to use.
+    """
+    if not isinstance(u, dolfinx.fem.Function):
+        raise TypeError(
+            f"{what} must be a dolfinx.fem.Function, got {type(u).__name__}: create it with "
+            'dolfinx.fem.Function(functionspace(mesh, ("Lagrange", 1, (3,))))'
+        )
+    V = u.function_space
+    element = V.ufl_element()
+    if V.dofmap.index_map_bs != 3 or element.degree != 1 or len(element.reference_value_shape) != 1:
+        raise ValueError(
+            f"{what} must live on a P1 vector space of dimension 3, got a space of degree "
+            f"{element.degree} with {V.dofmap.index_map_bs} component(s): use "
+            'functionspace(mesh, ("Lagrange", 1, (3,)))'
+        )
+
+
+def _signed_volumes6(x: np.ndarray) -> np.ndarray:
+    """Six times the signed volume of each tetrahedron of ``x`` (n, 4, 3)."""
+    e = x[:, 1:] - x[:, :1]
+    return np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))
+
+
+class CellDeterminants:
+    """Smallest ``det F = det(I + grad u)`` over the cells of a P1 vector displacement.
+
+    On affine tetrahedra ``F`` is constant per cell: ``det F = V_current / V_reference`` with
+    signed volumes from the vertex positions. The reference volumes are kept; each call costs a
+    few vector operations per cell (collective).
+
+    Args:
+        V: the P1 vector space (dimension 3) of the displacement.
+    """
+
+    def __init__(self, V: dolfinx.fem.FunctionSpace):
+        mesh = V.mesh
+        self._comm = mesh.comm
+        num_owned = mesh.topology.index_map(3).size_local
+        self._cells = np.asarray(V.dofmap.list).reshape(-1, 4)[:num_owned]
+        self._X = p1_dof_coordinates(V)
+        self._vol6 = _signed_volumes6(self._X[self._cells])
+
+    def local_min(self, u_local: np.ndarray) -> float:
+        """This rank's smallest det F for the local (owned + ghost) displacement values."""
+        if self._cells.shape[0] == 0:
+            return np.inf
+        x = self._X + np.asarray(u_local).reshape(-1, 3)
+        det = _signed_volumes6(x[self._cells]) / self._vol6
+        value = float(det.min())
+        return value if np.isfinite(value) else -np.inf
+
+    def min(self, u: dolfinx.fem.Function | np.ndarray) -> float:
+        """Smallest det F over all cells (collective); NaN displacements give ``-inf``.
+
+        Args:
+            u: the displacement Function (ghost values current), or its local array.
+        """
+        values = u.x.array if isinstance(u, dolfinx.fem.Function) else u
+        return self._comm.allreduce(self.local_min(values), op=MPI.MIN)

@@ -28,16 +28,17 @@ import numpy as np
 import ufl
 
 from fenics_matdepth._bulk import BulkMatrix
-from fenics_matdepth._checks import CellDeterminants, collective_error
 from fenics_matdepth._compat import (
     NewtonSolverProblemBase,
     bc_constrains_space,
     set_lag_preconditioner,
 )
+from fenics_matdepth._mpi import collective_error
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact import assembly
 from fenics_matdepth.contact.operator import ContactOperator
+from fenics_matdepth.kinematics import CellDeterminants
 
 __all__ = [
     "ContactAssembler",

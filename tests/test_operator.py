@@ -270,7 +270,7 @@ def test_summed_passes_match_per_pair_arrays():
     A = op.create_matrix(a)
     s = op.surface
     n_pairs = op._intersecting_pairs().size
-    split = s.kernel_tets[op._pair_k[op._intersecting_pairs()], 4] >= 0
+    split = s.kernel_tets[op.pair_search.pair_k[op._intersecting_pairs()], 4] >= 0
     assert comm.allreduce(n_pairs) > 4 * _SUM_CHUNK * comm.size
     assert comm.allreduce(int(np.count_nonzero(split))) > 0
     assert comm.allreduce(int(np.count_nonzero(s.bc))) > 0
@@ -363,12 +363,13 @@ def test_candidate_pairs_serve_later_updates_within_the_skin():
         u.x.scatter_forward()
         op.update()
         fa, fk = pairs.candidate_pairs(s, "area", 0.0)
-        near = overlapping_pairs(s.x, s.tri, s.tets, op._pair_a, op._pair_k)
-        kept = zip(op._pair_a[near].tolist(), op._pair_k[near].tolist(), strict=True)
+        pa, pk = op.pair_search.pair_a, op.pair_search.pair_k
+        near = overlapping_pairs(s.x, s.tri, s.tets, pa, pk)
+        kept = zip(pa[near].tolist(), pk[near].tolist(), strict=True)
         assert set(kept) == set(zip(fa.tolist(), fk.tolist(), strict=True))
         hit = _intersecting(s.x, s.tri, s.kernel_tets, fa, fk)
         active = op._intersecting_pairs()
-        got = set(zip(op._pair_a[active].tolist(), op._pair_k[active].tolist(), strict=True))
+        got = set(zip(pa[active].tolist(), pk[active].tolist(), strict=True))
         assert got == set(zip(fa[hit].tolist(), fk[hit].tolist(), strict=True))
         assert comm.allreduce(active.size) > 0
     searches = comm.allreduce(op.pair_searches)

@@ -2,12 +2,16 @@
 
 The operator owns the contact geometry of one dolfinx mesh (all bodies in one mesh) and adds
 the exact first and second derivatives of the contact energy into dolfinx-assembled PETSc
-vectors and matrices. It is a thin class over three modules:
+vectors and matrices. It is a thin class over these modules:
 
 * :mod:`fenics_matdepth.contact.surface`: what a rank holds (vertices, tetrahedra, boundary
   triangles, depths, the AABB tree over its tetrahedra) and how it follows ``u``;
-* :mod:`fenics_matdepth.contact.pairs`: candidate pairs and the sparsity-pattern couplings;
-* :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc.
+* :mod:`fenics_matdepth.contact.pairs`: candidate pairs (the :class:`PairSearch` kept from
+  one update to the next) and the sparsity-pattern couplings;
+* :mod:`fenics_matdepth.contact.evaluation`: the pair kernels over the evaluated pairs;
+* :mod:`fenics_matdepth.contact.assembly`: sums per dof and insertion into PETSc;
+* :mod:`fenics_matdepth.contact.diagnostics`: penetration, forces and pressures of the state;
+* :mod:`fenics_matdepth.contact.checks`: the checks of a new operator's state.
 
 Each rank handles the boundary triangles whose facets it owns, so every (triangle,
 tetrahedron) pair is evaluated once across the ranks; contributions to dofs owned by other
@@ -28,29 +32,16 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
-from fenics_matdepth.contact import assembly, pairs
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_augmented,
-    _area_pairs_max_depth,
-    _area_pairs_pressure_moments,
-    _area_pairs_summed,
-    _collocation_pairs,
-    _intersecting,
-    _point_depths,
-)
+from fenics_matdepth.contact import assembly, diagnostics, evaluation, pairs
+from fenics_matdepth.contact.checks import check_contact_state
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
-from fenics_matdepth.geometry.bvh import overlapping_pairs
+from fenics_matdepth.mesh_checks import check_contact_mesh
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 
-#: Default skin of the candidate pairs (area integration), in mean boundary edge lengths (see
-#: ``ContactOperator.pair_skin``).
-PAIR_SKIN = 0.1
 _INTEGRATIONS = ("area", "collocation")
 
 
@@ -125,32 +116,20 @@ class ContactOperator:
         self.margin = s.margin
 
         self._u_last: np.ndarray | None = None
-        self._pair_a = np.empty(0, dtype=INDEX)
-        self._pair_k = np.empty(0, dtype=INDEX)
-        #: The skin of the candidate pairs with area integration, in L. The pair search
-        #: inflates the triangle boxes by it, and its pairs serve later updates until some
-        #: held vertex has moved by more than about half of it (no pair can then have come
-        #: into contact unseen). With 0 the operator searches at every update, as it always
-        #: does with collocation, whose kernel evaluates every candidate.
-        self.pair_skin = PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
-        #: number of pair searches so far (the other updates reused the candidate pairs)
-        self.pair_searches = 0
-        self._x_at_search: np.ndarray | None = None  # held coordinates at the last search
-        self._search_refreshes = -1  # the halo build of the last search
-        self._searched_skin = 0.0  # the skin of the last search
+        #: the candidate pairs and when to search them again (see :attr:`pair_skin`)
+        self.pair_search = pairs.PairSearch(
+            integration, pairs.PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
+        )
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
         self._held_refreshes = -1  # the halo build they were made for
         self._pressure: np.ndarray | None = None  # augmented Lagrangian, see set_pressure
         self._pressure_width = 0.0
-        # output buffers of the summed passes (`_summed`), reused from state to state
-        self._grad_sum = np.empty(0, dtype=FLOAT)
-        self._reached = np.empty(0, dtype=bool)
-        self._blocks = np.empty((0, 3, 3), dtype=FLOAT)
-        self._touched = np.empty(0, dtype=bool)
+        # the fused passes (`_summed`), with output buffers reused from state to state
+        self._summed_pass = evaluation.SummedPass()
         # the surface holds, until the first update, what its triangles meet at u = 0
-        check_contact_state(self, allow_reference_overlap)
+        check_contact_state(s, allow_reference_overlap)
         self.update()
 
     @property
@@ -166,6 +145,26 @@ class ContactOperator:
             raise ValueError(f"penalty must be a positive number (pressure/length), got {value}")
         self._penalty = value
         self._cache.clear()  # energies, gradients and Hessians scale with eps
+
+    @property
+    def pair_skin(self) -> float:
+        """The skin of the candidate pairs (L; with area integration one tenth of the mean
+        boundary edge length by default, with collocation 0). The pair search inflates the
+        triangle boxes by it, and its pairs serve later updates until some held vertex has
+        moved by more than about half of it (no pair can then have come into contact unseen).
+        With 0 the operator searches at every update, as it always does with collocation,
+        whose kernel evaluates every candidate. Assignable; the next update searches anew."""
+        return self.pair_search.skin
+
+    @pair_skin.setter
+    def pair_skin(self, value: float) -> None:
+        self.pair_search.skin = value
+
+    @property
+    def pair_searches(self) -> int:
+        """The number of pair searches so far (the other updates reused the candidate
+        pairs)."""
+        return self.pair_search.searches
 
     # -- geometry -------------------------------------------------------------------------
 
@@ -188,33 +187,10 @@ class ContactOperator:
             return
         self._u_last = u_owned.copy()
         self.surface.update()
-        if self._pair_search_needed():
-            s = self.surface
-            self._pair_a, self._pair_k = pairs.candidate_pairs(s, self.integration, self.pair_skin)
-            self._x_at_search = s.x.copy()
-            self._search_refreshes = s.refreshes
-            self._searched_skin = self.pair_skin
-            self.pair_searches += 1
+        self.pair_search.update(self.surface)
         if self.surface.refreshes != self._held_refreshes:
             self._held_keys = None  # a new halo numbers the held vertices anew
         self._cache.clear()
-
-    def _pair_search_needed(self) -> bool:
-        """Whether the candidate pairs of the last search may miss a pair whose boxes now
-        overlap: a new halo, no skin or another skin than the search's, or a held vertex moved
-        by more than 0.45 of the skin since (two boxes that overlap now were then at most twice
-        that apart per axis, within the skin the search inflated the boxes by; the tenth
-        spared covers rounding)."""
-        s = self.surface
-        if (
-            self.pair_skin <= 0.0
-            or self.pair_skin != self._searched_skin
-            or self._x_at_search is None
-            or s.refreshes != self._search_refreshes
-        ):
-            return True
-        moved = float(np.abs(s.x - self._x_at_search).max(initial=0.0))
-        return not (moved <= 0.45 * self.pair_skin)
 
     # -- pair contributions ---------------------------------------------------------------
 
@@ -239,44 +215,30 @@ class ContactOperator:
         """The pair kernel's (energy, gradient, Hessian) arrays of the pairs `_pair_verts`
         lists (the intersecting area pairs, every collocation pair), or of its rows
         ``select``; not kept."""
-        s = self.surface
-        if self.integration == "area":
-            # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
-            # still comes out over its 7 original vertices
-            active = self._intersecting_pairs()
-            if select is not None:
-                active = active[select]
-            pa, pk = self._pair_a[active], self._pair_k[active]
-            if self._pressure is None:
-                return _area_pairs(
-                    s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
-                    want_grad, want_hess,
-                )  # fmt: skip
-            # the pressures of the held vertices (the numbering changes with the halo)
-            held_pressure = np.ascontiguousarray(self._pressure[s.global_vertex])
-            return _area_pairs_augmented(
-                s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty,
-                held_pressure, self._pressure_width, want_grad, want_hess,
-            )  # fmt: skip
-        pa, pk = self._pair_a, self._pair_k
+        pa, pk = self._evaluated_pairs()
         if select is not None:
             pa, pk = pa[select], pk[select]
-        return _collocation_pairs(
-            s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[pa], pk, self.penalty,
-            want_grad, want_hess,
+        return evaluation.pair_arrays(
+            self.surface, self.integration, pa, pk, self.penalty, self._pressure,
+            self._pressure_width, want_grad, want_hess,
         )  # fmt: skip
 
     def _pair_verts(self) -> np.ndarray:
         """The held vertices of the pairs the kernels evaluate ((n, 7) for the intersecting
         area pairs, (n, 5) for every collocation pair), kept until the next :meth:`update`."""
         if "verts" not in self._cache:
-            if self.integration == "area":
-                active = self._intersecting_pairs()
-                pa, pk = self._pair_a[active], self._pair_k[active]
-            else:
-                pa, pk = self._pair_a, self._pair_k
+            pa, pk = self._evaluated_pairs()
             self._cache["verts"] = pairs.pair_vertices(self.surface, self.integration, pa, pk)
         return self._cache["verts"]
+
+    def _evaluated_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The (contact element, tetrahedron) pairs the kernels evaluate: the intersecting
+        candidates with area integration, every candidate with collocation."""
+        search = self.pair_search
+        if self.integration == "area":
+            active = self._intersecting_pairs()
+            return search.pair_a[active], search.pair_k[active]
+        return search.pair_a, search.pair_k
 
     def _sums_fused(self) -> bool:
         """Whether the residual and Jacobian are summed as the pair kernel makes them
@@ -287,48 +249,19 @@ class ContactOperator:
     @announces_compilation("the contact pair integrals")
     def _summed(self, want_hess: bool) -> dict[str, np.ndarray]:
         """The pairs' energies, their gradient summed per held dof and, with ``want_hess``,
-        their Hessians summed into the pattern's 3 x 3 blocks (``kernels._area_pairs_summed``),
-        kept until the next :meth:`update` (a Hessian pass serves a gradient request).
-
-        The sums are those of :func:`assembly.gradient_array` and
-        :func:`assembly.add_jacobian_blocks` on `_evaluate`'s arrays, in the same order, but
-        the (n, 21, 21) Hessians (36 MB on 10k pairs) are never written: each chunk of pairs is
-        summed while in the cache. The returned arrays are the operator's buffers, valid until
-        the next pass.
-        """
+        their Hessians summed into the pattern's 3 x 3 blocks (:class:`evaluation.SummedPass`),
+        kept until the next :meth:`update` (a Hessian pass serves a gradient request). The
+        returned arrays are the operator's buffers, valid until the next pass."""
         if "summed_hess" in self._cache:
             return self._cache["summed_hess"]
         if not want_hess and "summed_grad" in self._cache:
             return self._cache["summed_grad"]
-        s = self.surface
-        active = self._intersecting_pairs()
-        pa, pk = self._pair_a[active], self._pair_k[active]
-        n_dofs = 3 * s.num_held
-        if self._grad_sum.shape[0] != n_dofs:
-            self._grad_sum = np.empty(n_dofs, dtype=FLOAT)
-            self._reached = np.empty(n_dofs, dtype=bool)
-        self._grad_sum.fill(0.0)
-        self._reached.fill(False)
+        pa, pk = self._evaluated_pairs()
+        pos = keys = None
         if want_hess:
             pos = self._coupling_positions()
             keys = self._pattern_in_held_numbering()
-            nk = keys.size
-            if self._blocks.shape[0] != nk:
-                self._blocks = np.empty((nk, 3, 3), dtype=FLOAT)
-                self._touched = np.empty(nk, dtype=bool)
-            self._blocks.fill(0.0)
-            self._touched.fill(False)
-        else:
-            pos = np.empty((0, 7, 7), dtype=INDEX)
-            keys = np.empty(0, dtype=INDEX)
-        energy = np.empty(pa.size, dtype=FLOAT)
-        _area_pairs_summed(
-            s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, self.penalty, want_hess, pos,
-            keys, s.bc, energy, self._grad_sum, self._reached, self._blocks, self._touched,
-        )  # fmt: skip
-        out = {"energy": energy, "grad_sum": self._grad_sum, "reached": self._reached}
-        if want_hess:
-            out["blocks"], out["touched"] = self._blocks, self._touched
+        out = self._summed_pass(self.surface, pa, pk, self.penalty, pos, keys)
         self._cache["summed_hess" if want_hess else "summed_grad"] = out
         return out
 
@@ -338,17 +271,7 @@ class ContactOperator:
         Hessian (Jacobian) passes at one state share the test (24 ms of 188k candidates on the
         40k-tetrahedron press)."""
         if "intersecting" not in self._cache:
-            s = self.surface
-            pa, pk = self._pair_a, self._pair_k
-            if self._searched_skin > 0.0:
-                # the pairs of the last search (boxes inflated by the skin) whose boxes
-                # overlap now: those a search at this state would find (4 to 5.5 ms for 192k
-                # pairs on bench_newton's press, against 34 ms for a search)
-                near = overlapping_pairs(s.x, s.tri, s.tets, pa, pk)
-                hit = _intersecting(s.x, s.tri, s.kernel_tets, pa[near], pk[near])
-                self._cache["intersecting"] = near[hit]
-            else:
-                self._cache["intersecting"] = _intersecting(s.x, s.tri, s.kernel_tets, pa, pk)
+            self._cache["intersecting"] = self.pair_search.intersecting(self.surface)
         return self._cache["intersecting"]
 
     def energy(self) -> float:
@@ -579,26 +502,11 @@ class ContactOperator:
         polygon of the boundary triangles around vertex i (``mu_i`` its hat function on the
         triangle), at the last update: the Uzawa update's data (collective; global vertex
         numbering, the same on every rank)."""
-        r = self._evaluate(False, False)
-        active = r["active"]
-        s = self.surface
-        gmom, amom = _area_pairs_pressure_moments(
-            s.x, s.kernel_depth, s.tri, s.kernel_tets, self._pair_a[active],
-            self._pair_k[active],
-        )  # fmt: skip
-        # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are
-        # the moments
-        verts = s.global_vertex[s.tri[self._pair_a[active]].ravel()]
-        n = self.num_vertices
-        local = np.vstack(
-            (
-                np.bincount(verts, weights=gmom.ravel(), minlength=n),
-                np.bincount(verts, weights=amom.ravel(), minlength=n),
-            )
+        active = self._evaluate(False, False)["active"]
+        search = self.pair_search
+        return diagnostics.pressure_moments(
+            self.surface, search.pair_a[active], search.pair_k[active]
         )
-        total = np.empty_like(local)
-        self.comm.Allreduce(local, total, op=MPI.SUM)
-        return total[0], total[1]
 
     def peak_pressure(self) -> np.ndarray:
         """Per vertex, the largest contact pressure at the deepest point of a penetrating
@@ -608,16 +516,9 @@ class ContactOperator:
         penetrates (collective; global vertex numbering, the same on every rank). The update of
         the quadratic pressure term (area integration)."""
         g, pair_a, _ = self._pair_depths()
-        s = self.surface
-        verts = s.global_vertex[s.tri[pair_a]]
-        stiffness = np.full(g.shape, self.penalty)
-        if self._pressure is not None and self._pressure_width > 0.0:
-            stiffness += self._pressure[verts].mean(axis=1) / self._pressure_width
-        peak = np.zeros(self.num_vertices)
-        for c in range(3):
-            np.maximum.at(peak, verts[:, c], stiffness * g)
-        self.comm.Allreduce(MPI.IN_PLACE, peak, op=MPI.MAX)
-        return peak
+        return diagnostics.peak_pressure(
+            self.surface, g, pair_a, self.penalty, self._pressure, self._pressure_width
+        )
 
     # -- diagnostics ------------------------------------------------------------------------
 
@@ -628,9 +529,7 @@ class ContactOperator:
         the maximum of ``g_K(x_a)`` over the boundary vertices inside a tetrahedron
         (collective).
         """
-        g = self._pair_depths()[0]
-        local = float(g.max()) if g.size else 0.0
-        return self.comm.allreduce(local, op=MPI.MAX)
+        return diagnostics.max_penetration(self.surface, self._pair_depths()[0])
 
     def vertex_penetration(self) -> np.ndarray:
         """Material depth reached by each boundary vertex at the last update (collective).
@@ -651,38 +550,16 @@ class ContactOperator:
         Returns:
             (num_vertices,) depths (L) in the global vertex numbering, the same on every rank.
         """
-        s = self.surface
-        local = np.zeros(self.num_vertices, dtype=FLOAT)
-        # the boundary vertices of this rank's contact elements: the halo holds every
-        # tetrahedron near them
-        verts = np.unique(s.tri) if self.integration == "area" else s.nodes
-        if verts.size and s.tree is not None:
-            points = np.ascontiguousarray(s.x[verts])
-            # a hair of margin: a point on a tetrahedron's face stays a candidate whatever
-            # the rounding of the boxes
-            qa, qk = s.tree.query_boxes(points, points, margin=1e-12 * s.mean_edge)
-            keep = np.all(s.tets[qk] != verts[qa, None], axis=1)
-            qa, qk = qa[keep], qk[keep]
-            g = _point_depths(s.x, s.kernel_depth, s.kernel_tets, points, qa, qk)
-            np.maximum.at(local, s.global_vertex[verts[qa]], g)
-        out = np.empty_like(local)
-        self.comm.Allreduce(local, out, op=MPI.MAX)
-        return out
+        return diagnostics.vertex_penetration(self.surface, self.integration)
 
     def _pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """This rank's pairs with their deepest material depth at the last update: ``(g,
-        pair_a, pair_k)`` (area integration: the active pairs, g over each polygon;
-        collocation: every pair, g at its vertex)."""
-        r = self._evaluate(False, False)
-        s = self.surface
-        if self.integration == "area":
-            active = r["active"]
-            pair_a, pair_k = self._pair_a[active], self._pair_k[active]
-            g = _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
-        else:
-            pair_a, pair_k = self._pair_a, self._pair_k
-            w = s.weight[s.nodes[pair_a]]
-            g = np.sqrt(2.0 * r["energy"] / (self.penalty * w))
+        """This rank's evaluated pairs with their deepest material depth at the last update:
+        ``(g, pair_a, pair_k)`` (see :func:`diagnostics.pair_depths`)."""
+        energy = self._evaluate(False, False)["energy"]
+        pair_a, pair_k = self._evaluated_pairs()
+        g = diagnostics.pair_depths(
+            self.surface, self.integration, self.penalty, pair_a, pair_k, energy
+        )
         return g, pair_a, pair_k
 
     def deepest_contact(self) -> dict[str, typing.Any] | None:
@@ -700,31 +577,7 @@ class ContactOperator:
           to judge the depth by (L; None for collocation).
         """
         g, pair_a, pair_k = self._pair_depths()
-        s = self.surface
-        best = (0.0, None)
-        if g.size and g.max() > 0.0:
-            p = int(np.argmax(g))
-            if self.integration == "area":
-                surf = s.tri[pair_a[p]]
-                edges = s.X[surf[[1, 2, 0]]] - s.X[surf]
-                local_h = float(np.linalg.norm(edges, axis=1).mean())
-            else:
-                surf, local_h = s.nodes[pair_a[p]][None], None
-            tet = s.tets[pair_k[p], :4]
-            best = (
-                float(g[p]),
-                {
-                    "depth": float(g[p]),
-                    "surface_vertices": s.global_vertex[surf].tolist(),
-                    "tetrahedron_vertices": s.global_vertex[tet].tolist(),
-                    "surface_reference": s.X[surf].mean(axis=0).tolist(),
-                    "tetrahedron_reference": s.X[tet].mean(axis=0).tolist(),
-                    "surface_position": s.x[surf].mean(axis=0).tolist(),
-                    "local_h": local_h,
-                },
-            )
-        # the deepest over the ranks, the lowest rank's on a tie
-        return max(self.comm.allgather(best), key=lambda b: b[0])[1]
+        return diagnostics.deepest_contact(self.surface, self.integration, g, pair_a, pair_k)
 
     def force_resultants(self) -> np.ndarray:
         """Net contact force on each body, ``(num_bodies, 3)`` (force units; collective).
@@ -734,13 +587,7 @@ class ContactOperator:
         self-contact contributes nothing to its body's resultant.
         """
         r = self._evaluate(True, False)
-        verts = r["verts"]
-        out = np.zeros((self.num_bodies, 3), dtype=FLOAT)
-        if verts.size:
-            body = np.repeat(self.surface.body[verts.ravel()], 3)
-            comp = np.tile(np.arange(3), verts.size)
-            np.add.at(out, (body, comp), -r["grad"].ravel())
-        return self.comm.allreduce(out)
+        return diagnostics.force_resultants(self.surface, r["verts"], r["grad"])
 
     def diagnostics(self) -> dict[str, typing.Any]:
         """Contact state at the last update (collective).
@@ -764,7 +611,7 @@ class ContactOperator:
             "boundary_adjacent_tets": self.depth_deficiency.boundary_adjacent,
             "deficient_fraction": self.depth_deficiency.fraction,
             "split_tets": self.num_split_tets,
-            "candidate_pairs": self.comm.allreduce(int(self._pair_a.size)),
+            "candidate_pairs": self.comm.allreduce(int(self.pair_search.pair_a.size)),
             "active_pairs": self.comm.allreduce(int(np.count_nonzero(r["energy"] > 0.0))),
             "energy": self.energy(),
             "max_penetration": self.max_penetration(),
