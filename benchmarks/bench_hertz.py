@@ -64,9 +64,7 @@ Prints figures; asserts nothing.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -78,20 +76,13 @@ import ufl
 import fenics_matdepth as fm
 from fenics_matdepth.boundary import owned_exterior_facets
 from fenics_matdepth.depth import boundary_triangles, distance_to_triangles
+from meshes import hertz
 
-ROOT = Path(__file__).resolve().parents[1]
 RADIUS, WIDTH, DEPTH = 8.0, 20.0, 20.0
 YOUNGS, POISSON = 200.0, 0.3
 LOAD = 2 * RADIUS * 0.625
 #: the peer's errors of p_max against Hertz theory at res 1.0, 0.5, 0.35
 PEER_PMAX_ERROR = {1.0: -0.73, 0.5: -0.16, 0.35: 0.001}
-
-
-def _hertz_module():
-    spec = importlib.util.spec_from_file_location("meshes_hertz", ROOT / "meshes" / "hertz.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _full_body_depth(mesh, tol):
@@ -226,7 +217,6 @@ def run(
     petsc_options: dict | None = None,
 ) -> dict:
     comm = MPI.COMM_WORLD
-    hertz = _hertz_module()
     full = model == "full"
     copies = 1 if full else 4  # of the meshed bodies in the full problem
     mesh, cell_tags, facet_tags = hertz.hertz_mesh(

@@ -18,9 +18,7 @@ columns), which says what contact itself costs. Prints figures; asserts nothing 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 from mpi4py import MPI
 from petsc4py import PETSc
@@ -31,12 +29,8 @@ import numpy as np
 import ufl
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import create_tetrahedral_mesh
-from fenics_matdepth._constants import INDEX
 from fenics_matdepth.contact import assembly
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_operator import _box_tets
+from fenics_matdepth.meshing import box_tetrahedra, create_tetrahedral_mesh
 
 TARGET_CONTACT_SHARE = 0.25
 TARGET_ITERATION_RATIO = 1.3
@@ -62,7 +56,8 @@ def bulk_newton_iteration(
     if lean:
         num_vertices = u.function_space.dofmap.index_map.size_global
         dirichlet = assembly.global_dirichlet_dofs(comm, u.function_space, bcs)
-        A = assembly.create_matrix(comm, J, np.empty(0, INDEX), num_vertices, dirichlet)
+        no_couplings = np.empty(0, dtype=np.int64)  # vertex-coupling keys are int64
+        A = assembly.create_matrix(comm, J, no_couplings, num_vertices, dirichlet)
     else:
         A = dolfinx.fem.petsc.create_matrix(J)
     b = u.x.petsc_vec.duplicate()  # ghosted, as assembly and lifting expect
@@ -102,8 +97,8 @@ def bulk_newton_iteration(
 
 
 def build(comm, lower, upper):
-    xa, ca = _box_tets(lower, (0.0, 0.0, 0.0), (1.5, 1.5, 0.5))
-    xb, cb = _box_tets(upper, (0.25, 0.25, 0.5), (1.0, 1.0, 0.5))
+    xa, ca = box_tetrahedra(lower, (0.0, 0.0, 0.0), (1.5, 1.5, 0.5))
+    xb, cb = box_tetrahedra(upper, (0.25, 0.25, 0.5), (1.0, 1.0, 0.5))
     cells = np.vstack((ca, cb + xa.shape[0]))
     return create_tetrahedral_mesh(comm, cells, np.vstack((xa, xb))), cells.shape[0]
 

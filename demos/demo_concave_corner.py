@@ -83,22 +83,17 @@ import ufl
 from dolfinx import fem, io, mesh, plot
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import gmsh_model_to_mesh
-from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, show_image
+from fenics_matdepth.meshing import gmsh_model_to_mesh
+from fenics_matdepth.plotting import gather_vtk_grid, offscreen_pyvista, output_folder, show_image
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
 quick = os.environ.get("MATDEPTH_DEMO_QUICK", "0") not in ("", "0")
-if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
-    output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
-else:
-    try:
-        output = Path(__file__).resolve().parent / "output"
-    except NameError:  # in a notebook
-        output = Path.cwd() / "output"
-if comm.rank == 0:
-    output.mkdir(parents=True, exist_ok=True)
-comm.barrier()
+try:
+    here = Path(__file__).resolve().parent
+except NameError:  # in a notebook
+    here = Path.cwd()
+output = output_folder(comm, here / "output")  # or $MATDEPTH_DEMO_OUTPUT
 
 
 def report(message: str) -> None:

@@ -55,10 +55,8 @@
 # +
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -72,9 +70,13 @@ import fenics_matdepth as fm
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
+    output_folder,
     show_image,
     write_animation,
 )
+
+# the model builders of meshes/: run with the repository on PYTHONPATH
+from meshes import rods
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -83,13 +85,7 @@ try:
     here = Path(__file__).resolve().parent
 except NameError:  # in a notebook
     here = Path.cwd()
-if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
-    output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
-else:
-    output = here / "output"
-if comm.rank == 0:
-    output.mkdir(parents=True, exist_ok=True)
-comm.barrier()
+output = output_folder(comm, here / "output")  # or $MATDEPTH_DEMO_OUTPUT
 
 
 def report(message: str) -> None:
@@ -108,11 +104,6 @@ def report(message: str) -> None:
 # meshed freely with 20 mm elements (15 mm in the reduced run).
 
 # +
-spec = importlib.util.spec_from_file_location("meshes_rods", here.parent / "meshes" / "rods.py")
-rods = importlib.util.module_from_spec(spec)
-sys.modules[spec.name] = rods  # dataclasses look their module up there
-spec.loader.exec_module(rods)
-
 if quick:
     geometry = rods.RodsGeometry(rows=2, columns=1, layers=6, foundation_size=0.015)
     t_end = 0.2  # s

@@ -64,7 +64,6 @@
 # +
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -74,27 +73,22 @@ import numpy as np
 import ufl
 from dolfinx import fem, io, mesh, plot
 
-from fenics_matdepth import materials
-from fenics_matdepth._compat import solve_nonlinear
+from fenics_matdepth import materials, solve_nonlinear
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
+    output_folder,
     round_bands,
     show_image,
 )
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
-if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
-    output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
-else:
-    try:
-        output = Path(__file__).resolve().parent / "output"
-    except NameError:  # in a notebook
-        output = Path.cwd() / "output"
-if comm.rank == 0:
-    output.mkdir(parents=True, exist_ok=True)
-comm.barrier()
+try:
+    here = Path(__file__).resolve().parent
+except NameError:  # in a notebook
+    here = Path.cwd()
+output = output_folder(comm, here / "output")  # or $MATDEPTH_DEMO_OUTPUT
 # -
 
 # ### Geometry, mesh and material data

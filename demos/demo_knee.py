@@ -66,7 +66,6 @@
 # +
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import sys
@@ -84,14 +83,18 @@ from dolfinx import fem, io, plot
 from dolfinx.mesh import entities_to_geometry
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import interpolation_points
+from fenics_matdepth.meshing import interpolation_points
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
+    output_folder,
     round_bands,
     show_image,
     write_animation,
 )
+
+# the model builders of meshes/: run with the repository on PYTHONPATH
+from meshes import leg
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -116,12 +119,8 @@ try:
     here = Path(__file__).resolve().parent
 except NameError:  # in a notebook
     here = Path.cwd()
-if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
-    output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
-else:
-    output = here / "output"
+output = output_folder(comm, here / "output")  # or $MATDEPTH_DEMO_OUTPUT
 if comm.rank == 0:
-    output.mkdir(parents=True, exist_ok=True)
     (output / "knee_stop").unlink(missing_ok=True)  # a stop request of an earlier run
 comm.barrier()
 
@@ -131,10 +130,6 @@ def report(message: str) -> None:
         print(message, flush=True)
 
 
-spec = importlib.util.spec_from_file_location("leg", here.parent / "meshes" / "leg.py")
-leg = importlib.util.module_from_spec(spec)
-sys.modules["leg"] = leg  # before executing it: its dataclass looks itself up there
-spec.loader.exec_module(leg)
 # -
 
 # ### The leg

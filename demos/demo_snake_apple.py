@@ -62,7 +62,6 @@
 # +
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import time
@@ -75,13 +74,17 @@ import ufl
 from dolfinx import fem, io, plot
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import interpolation_points
+from fenics_matdepth.meshing import interpolation_points
 from fenics_matdepth.plotting import (
     gather_vtk_grid,
     offscreen_pyvista,
+    output_folder,
     show_image,
     write_animation,
 )
+
+# the model builders of meshes/: run with the repository on PYTHONPATH
+from meshes.snake import APPLE, CORE, LIP, SNAKE, snake_mesh
 
 start = time.perf_counter()
 comm = MPI.COMM_WORLD
@@ -90,13 +93,7 @@ try:
     here = Path(__file__).resolve().parent
 except NameError:  # in a notebook
     here = Path.cwd()
-if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
-    output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
-else:
-    output = here / "output"
-if comm.rank == 0:
-    output.mkdir(parents=True, exist_ok=True)
-comm.barrier()
+output = output_folder(comm, here / "output")  # or $MATDEPTH_DEMO_OUTPUT
 
 
 def report(message: str) -> None:
@@ -118,12 +115,6 @@ def report(message: str) -> None:
 # 2.6 mm, a shorter body, the apple's centre ending at 16 mm, 8 steps instead of 31).
 
 # +
-spec = importlib.util.spec_from_file_location("snake_mesh", here.parent / "meshes" / "snake.py")
-snake_geometry = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(snake_geometry)
-SNAKE, APPLE, CORE, LIP = (snake_geometry.SNAKE, snake_geometry.APPLE, snake_geometry.CORE,
-                           snake_geometry.LIP)  # fmt: skip
-
 geometry = {
     "inner_radius": 3.5,
     "outer_radius": 8.0,
@@ -138,7 +129,7 @@ geometry = {
     "apple_size": 3.5 if quick else 1.8,
 }
 apple_end = 16.0 if quick else 30.0  # mm: x of the apple's centre at the end
-domain, cell_tags, facet_tags = snake_geometry.snake_mesh(comm, **geometry)
+domain, cell_tags, facet_tags = snake_mesh(comm, **geometry)
 V = fem.functionspace(domain, ("Lagrange", 1, (3,)))
 num_tets = domain.topology.index_map(3).size_global
 num_vertices = V.dofmap.index_map.size_global

@@ -39,6 +39,8 @@ def main(names: list[str]) -> int:
         os.environ["MATDEPTH_DEMO_QUICK"] = "1"
     os.environ.setdefault("MATDEPTH_DEMO_OUTPUT", str(HERE / "_build" / "demo_output"))
     os.environ["MPLBACKEND"] = "module://matplotlib_inline.backend_inline"
+    # the kernels import fenics_matdepth and the model builders (`from meshes import leg`)
+    # from this checkout
     os.environ["PYTHONPATH"] = os.pathsep.join(
         p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p
     )
@@ -51,8 +53,8 @@ def main(names: list[str]) -> int:
         }  # fmt: skip
         client = nbclient.NotebookClient(
             notebook, timeout=TIMEOUT, kernel_name="python3",
-            # run where the script lives, as a user opening it there would: the demos find
-            # meshes/ next to their folder
+            # run where the script lives, as a user opening it there would: the demos write
+            # to output/ beside themselves unless MATDEPTH_DEMO_OUTPUT says otherwise
             resources={"metadata": {"path": str(REPO / "demos")}},
         )  # fmt: skip
         try:

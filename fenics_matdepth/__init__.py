@@ -19,7 +19,9 @@ from fenics_matdepth import (
     geometry,
     kinematics,
     materials,
+    meshing,
 )
+from fenics_matdepth._compat import solve_nonlinear
 from fenics_matdepth.augmented import (
     AugmentedLagrangian,
     RigidModeDamping,
@@ -70,10 +72,12 @@ __all__ = [
     "kinematics",
     "material_depth",
     "materials",
+    "meshing",
     "propose_penalty",
     "rotation_displacement",
     "rotation_matrix",
     "rigid_body_modes",
     "solve_load_steps",
+    "solve_nonlinear",
     "solve_time_steps",
 ]

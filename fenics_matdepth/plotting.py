@@ -1,5 +1,5 @@
-"""Pictures from demos and scripts: off-screen pyvista, also on a headless Linux machine (CI,
-clusters), and distributed meshes gathered on rank 0 for it."""
+"""Pictures from demos and scripts: the folder they go to, off-screen pyvista, also on a headless
+Linux machine (CI, clusters), and distributed meshes gathered on rank 0 for it."""
 
 from __future__ import annotations
 
@@ -8,17 +8,44 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 
 __all__ = [
     "gather_vtk_grid",
     "offscreen_pyvista",
+    "output_folder",
     "round_bands",
     "show_image",
     "start_virtual_display",
     "write_animation",
 ]
+
+
+def output_folder(comm, default: str | os.PathLike) -> Path:
+    """The folder a script writes its pictures and results to, made if missing (collective).
+
+    ``$MATDEPTH_DEMO_OUTPUT`` when it is set (the demos' tests and the docs build send each
+    run's output to a folder of their own), else ``default``. Rank 0 makes the folder; every
+    rank returns once it exists.
+
+    Args:
+        comm: the script's communicator.
+        default: the folder to use when ``$MATDEPTH_DEMO_OUTPUT`` is not set, e.g. ``output/``
+            beside the script.
+
+    Returns:
+        The folder, as an absolute path when it comes from ``$MATDEPTH_DEMO_OUTPUT``.
+    """
+    if os.environ.get("MATDEPTH_DEMO_OUTPUT"):
+        output = Path(os.environ["MATDEPTH_DEMO_OUTPUT"]).resolve()
+    else:
+        output = Path(default)
+    if comm.rank == 0:
+        output.mkdir(parents=True, exist_ok=True)
+    comm.barrier()
+    return output
 
 
 def round_bands(largest: float, most: int) -> tuple[float, int]:

@@ -65,7 +65,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 
-from fenics_matdepth._compat import gmsh_build_to_mesh
+from fenics_matdepth.meshing import gmsh_build_to_mesh
 
 __all__ = [
     "BODIES",

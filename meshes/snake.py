@@ -31,7 +31,7 @@ from mpi4py import MPI
 
 import dolfinx
 
-from fenics_matdepth._compat import gmsh_build_to_mesh
+from fenics_matdepth.meshing import gmsh_build_to_mesh
 
 __all__ = ["APPLE", "CORE", "LIP", "SNAKE", "build_snake_model", "snake_mesh"]
 
@@ -180,7 +180,6 @@ def snake_mesh(
         ``(mesh, cell_tags, facet_tags)`` with the tags of this module.
     """
     return gmsh_build_to_mesh(lambda model: build_snake_model(model, **kwargs), comm)
-    return mesh, cell_tags, facet_tags
 
 
 if __name__ == "__main__":

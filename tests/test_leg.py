@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 from mpi4py import MPI
 
@@ -13,17 +10,7 @@ import numpy as np
 import pytest
 
 from fenics_matdepth._compat import geometry_dofmap
-
-LEG_FILE = Path(__file__).resolve().parents[1] / "meshes" / "leg.py"
-
-
-@pytest.fixture(scope="module")
-def leg():
-    spec = importlib.util.spec_from_file_location("leg", LEG_FILE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["leg"] = module  # before executing it: its dataclass looks itself up there
-    spec.loader.exec_module(module)
-    return module
+from meshes import leg
 
 
 def _inside_polygon(points: np.ndarray, corners: list[tuple[float, float]]) -> np.ndarray:
@@ -38,7 +25,7 @@ def _inside_polygon(points: np.ndarray, corners: list[tuple[float, float]]) -> n
 
 
 @pytest.mark.serial
-def test_the_popliteal_space_is_empty_of_tissue_and_covered_by_skin(leg):
+def test_the_popliteal_space_is_empty_of_tissue_and_covered_by_skin():
     """No soft tissue is left in the slot behind the knee (the tissue that a flexion of 150
     degrees about the fixed axis would rotate into the femoral shaft), the skin-fat layer
     covers it, and the calf tissue in front of its lower face (glued to the tibia) stays."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fenics_matdepth.plotting import round_bands, write_animation
+from fenics_matdepth.plotting import output_folder, round_bands, write_animation
 
 
 @pytest.mark.serial
@@ -37,6 +37,22 @@ def test_write_animation_rejects_bad_frames(tmp_path):
     frames = [np.zeros((4, 4, 3), np.uint8), np.zeros((5, 4, 3), np.uint8)]
     with pytest.raises(ValueError, match="same size"):
         write_animation(frames, tmp_path / "b.gif")
+
+
+@pytest.mark.serial
+def test_output_folder(tmp_path, monkeypatch):
+    """$MATDEPTH_DEMO_OUTPUT (made absolute) when set, else the default; made if missing."""
+    from mpi4py import MPI
+
+    monkeypatch.delenv("MATDEPTH_DEMO_OUTPUT", raising=False)
+    default = tmp_path / "beside" / "output"
+    assert output_folder(MPI.COMM_WORLD, default) == default
+    assert default.is_dir()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MATDEPTH_DEMO_OUTPUT", "run/1")
+    got = output_folder(MPI.COMM_WORLD, default)
+    assert got == tmp_path.resolve() / "run" / "1"
+    assert got.is_dir()
 
 
 @pytest.mark.parametrize(
