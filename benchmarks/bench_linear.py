@@ -27,7 +27,7 @@ from petsc4py import PETSc
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_factor import contact_jacobian
 
-from fenics_matdepth.solvers import rigid_body_modes
+from fenics_matdepth.problems import rigid_body_modes
 
 BASE_LOWER, BASE_UPPER = (24, 24, 8), (16, 16, 8)
 
