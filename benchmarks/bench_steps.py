@@ -119,7 +119,7 @@ def main() -> None:
     # the converged solves' split (failed attempts, cut and retried, are in "other")
     timings = {
         key: comm.allreduce(sum(step.timings[key] for step in steps), op=MPI.MAX)
-        for key in fm.solvers.TIMING_KEYS
+        for key in fm.system_assembler.TIMING_KEYS
     }
     h = min(1.0 / args.upper[0], 0.5 / args.upper[2])  # the soft block's grid spacing
     total = time.perf_counter() - START

@@ -710,7 +710,7 @@ if resume:
     per_step = [m for m in comm.bcast(per_step, root=0) if m["load"] <= meta["load"] + 1e-12]
     attempts["count"] = -1  # solve_load_steps sets the saved load once before the first step
     report(f"resuming from {np.degrees(meta['load'] * total_angle):.1f} deg ({checkpoint})")
-timing_totals = dict.fromkeys(fm.solvers.TIMING_KEYS, 0.0)
+timing_totals = dict.fromkeys(fm.system_assembler.TIMING_KEYS, 0.0)
 body_field = fem.Function(Q, name="body")
 body_field.x.array[Q.dofmap.list[:, 0]] = cell_body
 body_field.x.scatter_forward()

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-# _cache first: numba's cache stamps of the kernels then cover all the package's sources
+# _cache first: numba's cache stamps of the kernels then cover all the package's sources.
+# linear_solver fixes PETSc's summation order (linear_solver.MDOT_GEMV_OPTION) on import,
+# which must come before anything creates a PETSc vector.
 from fenics_matdepth import (
     _cache,  # noqa: F401
     checkpoint,
     contact,
     geometry,
     kinematics,
+    linear_solver,  # noqa: F401
     materials,
     meshing,
 )
@@ -32,24 +35,17 @@ from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.continuation import ContinuationStage, PenaltyContinuation
 from fenics_matdepth.depth import depth_deficiency, material_depth
-from fenics_matdepth.dynamics import BackwardEuler, Newmark, TimeStep, solve_time_steps
+from fenics_matdepth.dynamics import BackwardEuler, Newmark
 from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
-from fenics_matdepth.solvers import (
-    ContactAssembler,
-    ContactProblem,
-    LoadStep,
-    NonlinearContactProblem,
-    SolveResult,
-    StopRequested,
-    rigid_body_modes,
-    solve_load_steps,
-)
+from fenics_matdepth.problems import ContactProblem, NonlinearContactProblem, rigid_body_modes
+from fenics_matdepth.results import LoadStep, SolveResult, StopRequested, TimeStep
+from fenics_matdepth.stepping import solve_load_steps, solve_time_steps
+from fenics_matdepth.system_assembler import SystemAssembler
 
 __all__ = [
     "AugmentedLagrangian",
     "BackwardEuler",
     "Checkpoint",
-    "ContactAssembler",
     "ContactOperator",
     "ContactProblem",
     "ContinuationStage",
@@ -61,6 +57,7 @@ __all__ = [
     "RigidRotation",
     "SolveResult",
     "StopRequested",
+    "SystemAssembler",
     "TimeStep",
     "UzawaUpdate",
     "__version__",
@@ -74,10 +71,26 @@ __all__ = [
     "materials",
     "meshing",
     "propose_penalty",
+    "rigid_body_modes",
     "rotation_displacement",
     "rotation_matrix",
-    "rigid_body_modes",
     "solve_load_steps",
     "solve_nonlinear",
     "solve_time_steps",
 ]
+
+
+def __getattr__(name: str):
+    """``fenics_matdepth.ContactAssembler``, the former name of :class:`SystemAssembler`, with
+    a DeprecationWarning."""
+    if name == "ContactAssembler":
+        import warnings
+
+        warnings.warn(
+            "fenics_matdepth.ContactAssembler is deprecated: it is "
+            "fenics_matdepth.SystemAssembler now (fenics_matdepth.system_assembler)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return SystemAssembler
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -52,7 +52,6 @@ by updates from a moderate start.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import typing
 
@@ -61,56 +60,14 @@ from mpi4py import MPI
 import numpy as np
 
 from fenics_matdepth.depth import boundary_triangles
-from fenics_matdepth.solvers import SolveResult
+from fenics_matdepth.problems import looser_tolerances
+from fenics_matdepth.results import Solvable, SolveResult
 
 __all__ = ["AugmentedLagrangian", "RigidModeDamping", "UzawaUpdate", "damping_energy"]
 
 #: A failed inner solve after a pressure update is retried with the update halved, at most
 #: this many times.
 MAX_UPDATE_HALVINGS = 4
-
-
-class _Problem(typing.Protocol):
-    u: typing.Any
-    contact: typing.Any
-
-    def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
-
-
-def _newton_tolerances(problem) -> tuple[typing.Any, typing.Any]:
-    """The problem's SNES (``snes``) or DOLFINx NewtonSolver (``_solver``), either may be None."""
-    return getattr(problem, "snes", None), getattr(problem, "_solver", None)
-
-
-def _own_rtol(problem) -> float | None:
-    """The problem's relative Newton tolerance (None if it exposes no solver)."""
-    snes, newton = _newton_tolerances(problem)
-    if snes is not None:
-        return float(snes.getTolerances()[0])
-    return None if newton is None else float(newton.rtol)
-
-
-@contextlib.contextmanager
-def _looser_tolerances(problem, rtol: float | None, atol: float | None):
-    """While solving a stage, stop Newton at ``rtol`` (relative to the stage's initial residual)
-    or ``atol`` (absolute) where these are looser than the problem's own (None: unchanged)."""
-    snes, newton = _newton_tolerances(problem)
-    if snes is not None:
-        rtol0, atol0, stol, max_it = snes.getTolerances()
-        snes.setTolerances(rtol=max(rtol0, rtol or 0.0), atol=max(atol0, atol or 0.0))
-        try:
-            yield
-        finally:
-            snes.setTolerances(rtol=rtol0, atol=atol0, stol=stol, max_it=max_it)
-    elif newton is not None:
-        rtol0, atol0 = newton.rtol, newton.atol
-        newton.rtol, newton.atol = max(rtol0, rtol or 0.0), max(atol0, atol or 0.0)
-        try:
-            yield
-        finally:
-            newton.rtol, newton.atol = rtol0, atol0
-    else:
-        yield
 
 
 def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
@@ -123,7 +80,7 @@ def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
     3.9e-11 for relative targets of 4e-12 and below, while the first solve had started at
     2.2e-3)."""
     atol = None if first_norm is None else inner_rtol * first_norm
-    return _looser_tolerances(problem, None, atol)
+    return looser_tolerances(problem, None, atol)
 
 
 @dataclasses.dataclass
@@ -186,7 +143,7 @@ class AugmentedLagrangian:
 
     def __init__(
         self,
-        problem: _Problem,
+        problem: Solvable,
         tol: float | None = None,
         tol_h: float | None = None,
         max_updates: int = 20,
@@ -285,9 +242,8 @@ class AugmentedLagrangian:
         """
         start = self.pressure.copy()
         self.history = []
-        norms: list[np.ndarray] = []
-        iterations, rejected, converged, reason, shifted = 0, 0, False, -1, 0
-        factorisations = 0
+        results: list[SolveResult] = []
+        converged, reason = False, -1
         result = None
         previous = None  # (state, pressures) before the last update, to retry a failed solve
         halvings = 0
@@ -298,11 +254,7 @@ class AugmentedLagrangian:
                 result = self.problem.solve(raise_on_failure=False)
             if first_norm is None and len(result.residual_norms):
                 first_norm = float(result.residual_norms[0])
-            iterations += result.iterations
-            rejected += result.rejected_states
-            shifted += result.shifted_steps
-            factorisations += result.factorisations
-            norms.append(np.asarray(result.residual_norms))
+            results.append(result)
             if not result.converged:
                 if previous is None or halvings >= MAX_UPDATE_HALVINGS:
                     reason = result.reason
@@ -329,12 +281,8 @@ class AugmentedLagrangian:
             record.pressure_change = self.update_pressure()
             self.total_updates += 1
             k += 1
-        self.total_newton_iterations += iterations
-        out = SolveResult(
-            converged, reason, iterations,
-            np.concatenate(norms) if norms else np.empty(0), rejected, result.min_det_F,
-            shifted, factorisations,
-        )  # fmt: skip
+        out = SolveResult.merged(results, converged, reason)
+        self.total_newton_iterations += out.iterations
         if not converged:
             self.pressure = start
             if raise_on_failure:
@@ -437,7 +385,7 @@ class RigidModeDamping:
 
     def __init__(
         self,
-        problem: _Problem,
+        problem: Solvable,
         stiffness,
         anchor,
         rtol: float = 1e-2,
@@ -517,12 +465,7 @@ class RigidModeDamping:
                 result = solve_once()
         finally:
             self._k.value = 0.0
-        out = SolveResult(
-            result.converged, result.reason, sum(r.iterations for r in results),
-            np.concatenate([np.asarray(r.residual_norms) for r in results]),
-            sum(r.rejected_states for r in results), result.min_det_F,
-            sum(r.shifted_steps for r in results), sum(r.factorisations for r in results),
-        )  # fmt: skip
+        out = SolveResult.merged(results, result.converged, result.reason)
         self.held = out.converged
         if raise_on_failure and not out.converged:
             raise RuntimeError(out.failure_message())

@@ -19,17 +19,11 @@ from petsc4py import PETSc
 
 import numpy as np
 
-from fenics_matdepth.augmented import RigidModeDamping, _looser_tolerances, _own_rtol
-from fenics_matdepth.solvers import SolveResult
+from fenics_matdepth.augmented import RigidModeDamping
+from fenics_matdepth.problems import looser_tolerances, own_rtol
+from fenics_matdepth.results import Solvable, SolveResult
 
 __all__ = ["ContinuationStage", "PenaltyContinuation"]
-
-
-class _Problem(typing.Protocol):
-    u: typing.Any
-    contact: typing.Any
-
-    def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
 
 
 @dataclasses.dataclass
@@ -101,7 +95,7 @@ class PenaltyContinuation:
 
     def __init__(
         self,
-        problem: _Problem,
+        problem: Solvable,
         start: float | None = None,
         growth: float = 10.0,
         target: float | None = None,
@@ -157,11 +151,11 @@ class PenaltyContinuation:
         damped solves would only repeat (measured on the Hertz benchmark at res 1.0, 100 E/h:
         4 to 6 damped solves per stage)."""
         self.contact.penalty = penalty
-        own = _own_rtol(self.problem)
+        own = own_rtol(self.problem)
         rtol = self.stage_rtol if penalty < self.target else None
         atol = None if first_norm is None or own is None else own * first_norm
         try:
-            with _looser_tolerances(self.problem, rtol, atol):
+            with looser_tolerances(self.problem, rtol, atol):
                 solver = self.problem
                 if undamped and isinstance(solver, RigidModeDamping):
                     solver = solver.problem
@@ -188,9 +182,8 @@ class PenaltyContinuation:
         start_state = self.u.x.array.copy()
         self.history = []
         self.timings = {}
-        norms: list[np.ndarray] = []
-        iterations, rejected, converged, reason, min_det_F = 0, 0, False, -1, np.nan
-        shifted = factorisations = 0
+        results: list[SolveResult] = []
+        converged = False
         last = None  # (state, penalty) of the last converged stage
         growth = self.growth
         penalty = min(self.start, self.target)
@@ -202,12 +195,7 @@ class PenaltyContinuation:
                 if result is not None:
                     if first_norm is None and len(result.residual_norms):
                         first_norm = float(result.residual_norms[0])
-                    iterations += result.iterations
-                    rejected += result.rejected_states
-                    shifted += result.shifted_steps
-                    factorisations += result.factorisations
-                    norms.append(np.asarray(result.residual_norms))
-                    reason, min_det_F = result.reason, result.min_det_F
+                    results.append(result)
                     for key, seconds in getattr(self.problem, "timings", {}).items():
                         self.timings[key] = self.timings.get(key, 0.0) + seconds
                 ok = result is not None and result.converged
@@ -244,15 +232,12 @@ class PenaltyContinuation:
                     penalty = self.target
         finally:
             self.contact.penalty = self.target
-        self.total_newton_iterations += iterations
+        # the reason is the last stage's that solved
+        out = SolveResult.merged(results, converged, results[-1].reason if results else -1)
+        self.total_newton_iterations += out.iterations
         self.total_stages += len(self.history)
         if not converged:
             self.u.x.array[:] = start_state
-        out = SolveResult(
-            converged, reason, iterations,
-            np.concatenate(norms) if norms else np.empty(0), rejected, min_det_F, shifted,
-            factorisations,
-        )  # fmt: skip
         if raise_on_failure and not converged:
             raise RuntimeError(self.failure_message(out))
         return out

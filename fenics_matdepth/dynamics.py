@@ -1,4 +1,5 @@
-"""Implicit dynamics: Newmark and backward Euler time integration, and a time-step loop.
+"""Implicit dynamics: Newmark and backward Euler time integration (the time-step loop,
+:func:`~fenics_matdepth.solve_time_steps`, is in :mod:`fenics_matdepth.stepping`).
 
 The integrators hold the last converged state (displacement, velocity, acceleration) as
 DOLFINx Functions and expose the new step's acceleration and velocity as UFL expressions of the
@@ -28,8 +29,6 @@ there too (its residual and Jacobian at a blended displacement); the contact ope
 
 from __future__ import annotations
 
-import dataclasses
-import time
 import typing
 
 from mpi4py import MPI
@@ -40,10 +39,7 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 
-from fenics_matdepth._progress import StepProgress
-from fenics_matdepth.solvers import SolveResult, _write
-
-__all__ = ["BackwardEuler", "Newmark", "TimeStep", "solve_time_steps"]
+__all__ = ["BackwardEuler", "Newmark"]
 
 
 def _set_array(target: dolfinx.fem.Function, value) -> None:
@@ -93,7 +89,7 @@ class _Integrator:
         #: density (mass / L^3): a number, a Constant, a DG0 Function or any UFL expression
         self.rho = rho
         self.dx = dx if dx is not None else ufl.dx(domain=mesh)
-        #: time of the last converged state (set by :func:`solve_time_steps`)
+        #: time of the last converged state (set by :func:`~fenics_matdepth.solve_time_steps`)
         self.t = 0.0
         self._forms: dict[str, dolfinx.fem.Form] = {}
 
@@ -452,276 +448,3 @@ class BackwardEuler(_Integrator):
 
     def _velocity_slope(self, dt):
         return 1.0 / dt
-
-
-# -- the time-step loop ---------------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class TimeStep:
-    """One converged time step of :func:`solve_time_steps` (or the initial state, step 0).
-
-    Energies are of the state at time ``t`` (F L). ``external_work`` is the value of the
-    ``external_work`` form (the work of conservative loads, e.g. ``int rho g . u dx``), so the
-    total energy ``kinetic + strain + contact - external_work`` is conserved by an exact
-    integration of a conservative system.
-
-    Attributes:
-        step: number of the step (0: the initial state).
-        t: time reached (T).
-        dt: time step of this step (T).
-        iterations: Newton iterations of the converged solve.
-        residual_norms: its residual history.
-        cuts: failed or rejected attempts (dt halvings) before this step converged.
-        diagnostics: ``contact.diagnostics()`` after the step (empty without contact).
-        kinetic_energy: kinetic energy (F L).
-        strain_energy: strain energy (F L).
-        contact_energy: contact energy (F L).
-        external_work: work of the external loads (F L). Each energy is NaN when it cannot be
-            computed (no density, no form given).
-        seconds: wall time of the step, failed attempts included.
-    """
-
-    step: int
-    t: float
-    dt: float
-    iterations: int
-    residual_norms: np.ndarray
-    cuts: int
-    diagnostics: dict
-    kinetic_energy: float
-    strain_energy: float
-    contact_energy: float
-    external_work: float
-    seconds: float
-
-    @property
-    def total_energy(self) -> float:
-        """kinetic + strain + contact - external work (F L)."""
-        return self.kinetic_energy + self.strain_energy + self.contact_energy - self.external_work
-
-    @property
-    def active_pairs(self) -> int:
-        """Contact pairs with non-zero energy."""
-        return int(self.diagnostics.get("active_pairs", 0))
-
-    @property
-    def max_penetration(self) -> float:
-        """Largest material depth reached by the contact surface (L)."""
-        return float(self.diagnostics.get("max_penetration", 0.0))
-
-
-class _Solvable(typing.Protocol):
-    u: dolfinx.fem.Function
-
-    def solve(self, raise_on_failure: bool = True) -> SolveResult: ...
-
-
-def _form_value(form, comm, missing: float = 0.0) -> float:
-    if form is None:
-        return missing
-    return comm.allreduce(float(np.real(dolfinx.fem.assemble_scalar(form))))
-
-
-def _record(step, t, dt, result, cuts, problem, integrator, forms, seconds, comm) -> TimeStep:
-    contact = getattr(problem, "contact", None)
-    diag = contact.diagnostics() if contact is not None else {}
-
-    kinetic = integrator.kinetic_energy() if integrator.rho is not None else np.nan
-    return TimeStep(
-        step=step, t=t, dt=dt, iterations=result.iterations,
-        residual_norms=result.residual_norms, cuts=cuts, diagnostics=diag,
-        kinetic_energy=kinetic, strain_energy=_form_value(forms["strain"], comm, np.nan),
-        contact_energy=diag.get("energy", 0.0), external_work=_form_value(forms["external"], comm),
-        seconds=seconds,
-    )  # fmt: skip
-
-
-def solve_time_steps(
-    problem: _Solvable,
-    integrator: _Integrator,
-    t_end: float,
-    dt: float,
-    writer=None,
-    on_step: typing.Callable[[TimeStep], None] | None = None,
-    min_dt: float | None = None,
-    max_dt: float | None = None,
-    *,
-    set_time: typing.Callable[[float], None] | None = None,
-    strain_energy: ufl.Form | None = None,
-    external_work: ufl.Form | None = None,
-    max_penetration: float | None = None,
-    max_energy_change: float | None = None,
-    grow_after: int = 2,
-    predict: bool = True,
-    progress: bool = True,
-) -> list[TimeStep]:
-    """Integrate ``problem`` in time from the integrator's state to ``t_end`` with step control.
-
-    Each step sets the integrator's dt (and calls ``set_time(t_next)`` for time-dependent
-    loads), starts Newton from the integrator's prediction, and solves. A step that fails (no
-    convergence, NaN, an inverted element raising) or, with ``max_penetration``, converges with a
-    deeper penetration than that, is retried from the last converged state with half the step;
-    after ``grow_after`` successive steps without a cut, the step doubles again, up to
-    ``max_dt``. The last step is shortened to land on ``t_end``.
-
-    Args:
-        problem: a :class:`~fenics_matdepth.ContactProblem` or
-            :class:`~fenics_matdepth.NonlinearContactProblem` whose residual contains the
-            integrator's inertia term (anything with ``u``, ``solve(raise_on_failure=...)`` and,
-            optionally, ``contact``).
-        integrator: the :class:`Newmark` or :class:`BackwardEuler` of ``problem.u``, holding the
-            initial state (see ``initial``); its ``t`` is the start time.
-        t_end: final time (T).
-        dt: first (and nominal) time step (T).
-        writer: called with each converged state: a ``dolfinx.io.XDMFFile``
-            (``write_function(u, t)``), a ``dolfinx.io.VTXWriter`` (``write(t)``; give it ``u``,
-            ``integrator.v_prev`` and the material depth), or any callable ``writer(t)``.
-        on_step: called with each converged step's record, after ``integrator.advance()``.
-        min_dt: smallest step tried before giving up; default ``dt / 2**10``.
-        max_dt: largest step the controller grows to; default ``dt``.
-        set_time: sets time-dependent data for a time t (collective).
-        strain_energy: UFL form of the stored (strain) energy, reported per step.
-        external_work: UFL form of the work of conservative loads (e.g. ``int rho g . u dx``),
-            reported per step and subtracted in ``TimeStep.total_energy``.
-        max_penetration: reject converged steps whose contact penetration exceeds this (L);
-            at ``min_dt`` the step is accepted anyway.
-        max_energy_change: reject converged steps that change the total energy (kinetic +
-            strain + contact - external work) by more than this (F L); at ``min_dt`` the step
-            is accepted anyway. An error control for energy-conserving schemes (average
-            acceleration): where a step does not resolve an impact, it loses or gains energy.
-            Needs the integrator's ``rho`` and ``strain_energy``.
-        grow_after: successful steps before dt doubles.
-        predict: start each Newton solve from ``integrator.predict()`` (else from the last
-            state).
-        progress: report each converged step on rank 0: a progress bar in a terminal or a
-            notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
-
-    Returns:
-        The initial state (step 0) and every converged step, in time order.
-
-    Raises:
-        RuntimeError: if dt falls below ``min_dt`` on failures; ``u`` and the integrator then
-            hold the last converged state, whose time the message gives.
-    """
-    u = problem.u
-    if integrator.u is not u:
-        raise ValueError("the integrator must be built on the problem's unknown (problem.u)")
-    if not (np.isfinite(dt) and dt > 0.0):
-        raise ValueError(f"dt must be a positive number, got {dt}")
-    if max_energy_change is not None and (strain_energy is None or integrator.rho is None):
-        raise ValueError("max_energy_change needs strain_energy= and the integrator's rho")
-    if grow_after < 1:
-        raise ValueError(f"grow_after must be >= 1, got {grow_after}")
-    comm = u.function_space.mesh.comm
-    max_dt = float(dt) if max_dt is None else float(max_dt)
-    min_dt = float(dt) / 2**10 if min_dt is None else float(min_dt)
-    if not 0.0 < min_dt <= max_dt:
-        raise ValueError(f"need 0 < min_dt <= max_dt, got min_dt={min_dt}, max_dt={max_dt}")
-    forms = {
-        "strain": dolfinx.fem.form(strain_energy) if strain_energy is not None else None,
-        "external": dolfinx.fem.form(external_work) if external_work is not None else None,
-    }
-    t = integrator.t
-    tol = 1e-12 * max(abs(t_end), max_dt)
-    u.x.array[:] = integrator.u_prev.x.array
-    contact = getattr(problem, "contact", None)
-    if contact is not None:
-        contact.update()
-    if set_time is not None:
-        set_time(t)
-    initial = SolveResult(True, 0, 0, np.zeros(0))
-    history = [_record(0, t, 0.0, initial, 0, problem, integrator, forms, 0.0, comm)]
-    step_dt, successes = min(float(dt), max_dt), 0
-    reporter = StepProgress(comm, t, t_end, "t", enabled=progress)
-    reporter.message(_step_line(history[-1]))
-    try:
-        while t_end - t > tol:
-            cuts, tic = 0, time.perf_counter()
-            while True:
-                this_dt = min(step_dt, t_end - t)
-                if t_end - (t + this_dt) < tol:
-                    this_dt = t_end - t
-                integrator.dt = this_dt
-                if set_time is not None:
-                    set_time(t + this_dt)
-                if predict:
-                    integrator.predict()
-                else:
-                    integrator.restore()
-                failure = None
-                try:
-                    result = problem.solve(raise_on_failure=False)
-                    if not result.converged:
-                        failure = result.failure_message()
-                    elif this_dt / 2 >= min_dt:
-                        failure = _rejection(
-                            contact, integrator, forms, comm, history[-1], max_penetration,
-                            max_energy_change,
-                        )  # fmt: skip
-                except (RuntimeError, FloatingPointError, PETSc.Error) as err:
-                    failure = str(err)
-                if not comm.allreduce(failure is not None, op=MPI.LOR):
-                    break
-                cuts += 1
-                successes = 0
-                integrator.restore()
-                reason = (failure or "failed on another rank").split(";")[0]
-                reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
-                if this_dt / 2 < min_dt:
-                    integrator.dt = max(this_dt, min_dt)
-                    if set_time is not None:
-                        set_time(t)
-                    raise RuntimeError(
-                        f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} "
-                        f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: "
-                        f"{failure}"
-                    )
-                step_dt = this_dt / 2
-            integrator.advance()
-            t = integrator.t
-            record = _record(
-                len(history), t, this_dt, result, cuts, problem, integrator, forms,
-                time.perf_counter() - tic, comm,
-            )  # fmt: skip
-            history.append(record)
-            _write(writer, u, t)
-            if on_step is not None:
-                on_step(record)
-            reporter.step(t, _step_line(record))
-            if cuts == 0:
-                successes += 1
-                if successes >= grow_after and step_dt < max_dt:
-                    step_dt, successes = min(2.0 * step_dt, max_dt), 0
-    finally:
-        reporter.close()
-    return history
-
-
-def _rejection(contact, integrator, forms, comm, last, max_penetration, max_energy_change):
-    """Why a converged step is rejected by the step controller, or None."""
-    if max_penetration is not None and contact is not None:
-        depth = contact.max_penetration()
-        if depth > max_penetration:
-            return f"penetration {depth:.3e} > max_penetration {max_penetration:.3e}"
-    if max_energy_change is not None:
-        energy = (
-            integrator.trial_kinetic_energy()
-            + _form_value(forms["strain"], comm)
-            + (contact.energy() if contact is not None else 0.0)
-            - _form_value(forms["external"], comm)
-        )
-        change = energy - last.total_energy
-        if abs(change) > max_energy_change:
-            return f"energy change {change:.3e} beyond max_energy_change {max_energy_change:.3e}"
-    return None
-
-
-def _step_line(r: TimeStep) -> str:
-    """The one-line report of a converged time step."""
-    return (
-        f"step {r.step:4d}  t {r.t:.5g}  dt {r.dt:.3g}  newton {r.iterations:2d}  cuts {r.cuts}  "
-        f"pairs {r.active_pairs:5d}  max pen {r.max_penetration:.2e}  "
-        f"E kin {r.kinetic_energy:.4e}  strain {r.strain_energy:.4e}  "
-        f"contact {r.contact_energy:.3e}  total {r.total_energy:.6e}  {r.seconds:.2f} s"
-    )

@@ -13,7 +13,7 @@ from test_hard_steps import _soft_block_press
 from test_solvers import _touching_problem
 
 import fenics_matdepth as fm
-from fenics_matdepth.solvers import SolveResult
+from fenics_matdepth.results import SolveResult
 
 
 def _max_abs(comm, a: np.ndarray) -> float:

@@ -14,7 +14,7 @@ import scipy.linalg
 import ufl
 
 import fenics_matdepth as fm
-from fenics_matdepth.solvers import SolveResult
+from fenics_matdepth.results import SolveResult
 
 # -- a cantilever without contact -------------------------------------------------------------
 

@@ -27,7 +27,7 @@ import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.boundary import p1_dof_coordinates
 from fenics_matdepth.contact.operator import ContactOperator
-from fenics_matdepth.solvers import ContactProblem
+from fenics_matdepth.problems import ContactProblem
 
 #: Agreement asked of a partitioned run with the serial one (relative to the largest value).
 RTOL = 1e-10

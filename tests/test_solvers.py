@@ -23,11 +23,12 @@ import ufl
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
-from fenics_matdepth import solvers
+from fenics_matdepth import linear_solver, snes_callbacks, system_assembler
 from fenics_matdepth._bulk import BulkMatrix
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact import assembly
-from fenics_matdepth.solvers import ContactProblem, NonlinearContactProblem, SolveResult
+from fenics_matdepth.problems import ContactProblem, NonlinearContactProblem
+from fenics_matdepth.results import SolveResult
 
 E, NU = 1.0, 0.3
 
@@ -175,7 +176,7 @@ def test_a_kept_factorisation():
     # the first and third solves tried to keep a factorisation KEPT_TRIES times (as many linear
     # solves more than iterations), the third first on the second's last factorisation; the
     # second and fourth did not try (backing off after the first and third)
-    tries = solvers.KEPT_TRIES
+    tries = linear_solver.KEPT_TRIES
     linear_solves = [len(record) - iterations for iterations, _, record in failing]
     assert linear_solves == [tries, 0, tries, 0]
     assert [record[0] for _, _, record in failing] == [True, True, False, True]
@@ -276,7 +277,7 @@ def test_failed_ldlt_factorisation_is_retried_with_lu():
     problem.snes = CountingSNES(problem.snes)
     result = problem.solve(raise_on_failure=False)
     assert solved_with == ["cholesky", "lu"]
-    assert not result.converged and result.reason == solvers.LINEAR_SOLVE_FAILED
+    assert not result.converged and result.reason == linear_solver.LINEAR_SOLVE_FAILED
     assert np.array_equal(u.x.array, start)  # no Newton step was taken
     problem.solve(raise_on_failure=False)
     assert solved_with == ["cholesky", "lu", "lu"]  # LU from then on
@@ -340,8 +341,8 @@ print(len(products))
 
 def test_multiple_dot_products_do_not_depend_on_where_the_vectors_lie(child_env):
     """GMRES's orthogonalisation (VecMDot) gives the same bits wherever its vectors lie in
-    memory once the package is imported (solvers.MDOT_GEMV_OPTION), so a run repeats to the bit.
-    The same script with PETSc's gemv kernel (the option given) finds several results: the
+    memory once the package is imported (linear_solver.MDOT_GEMV_OPTION), so a run repeats to
+    the bit. The same script with PETSc's gemv kernel (the option given) finds several results: the
     test sees the difference it guards against."""
     if MPI.COMM_WORLD.rank != 0:
         return
@@ -356,7 +357,7 @@ def test_multiple_dot_products_do_not_depend_on_where_the_vectors_lie(child_env)
 
     assert distinct_results() == 1
     # the option given: left as it is, and OpenBLAS's gemv sums by where the vectors lie
-    assert distinct_results(PETSC_OPTIONS=f"-{solvers.MDOT_GEMV_OPTION} 1") > 1
+    assert distinct_results(PETSC_OPTIONS=f"-{linear_solver.MDOT_GEMV_OPTION} 1") > 1
 
 
 def test_convergence_test_stops_a_line_search_without_progress():
@@ -365,7 +366,7 @@ def test_convergence_test_stops_a_line_search_without_progress():
     norm unchanged, instead of running on to the iteration limit; a convergence
     (CONVERGED_SNORM_RELATIVE) if that happens below ROUNDING_FLOOR_RTOL of the start."""
 
-    from fenics_matdepth.solvers import NO_PROGRESS_ITERATIONS
+    from fenics_matdepth.snes_callbacks import NO_PROGRESS_ITERATIONS
 
     comm = MPI.COMM_WORLD
     mesh, V, u, residual, energy = _stacked_blocks(comm)
@@ -382,17 +383,17 @@ def test_convergence_test_stops_a_line_search_without_progress():
     assert stuck[:-1] == [reasons.ITERATING] * (len(stuck) - 1)
     assert stuck[-1] == reasons.DIVERGED_LINE_SEARCH
     # stuck at the rounding floor, far below the start: converged
-    floor = 0.1 * solvers.ROUNDING_FLOOR_RTOL
+    floor = 0.1 * snes_callbacks.ROUNDING_FLOOR_RTOL
     at_floor = run([1.0, 1e-3, floor] + [floor] * NO_PROGRESS_ITERATIONS)
     assert at_floor[:-1] == [reasons.ITERATING] * (len(at_floor) - 1)
     assert at_floor[-1] == reasons.CONVERGED_SNORM_RELATIVE
-    above = 10.0 * solvers.ROUNDING_FLOOR_RTOL
+    above = 10.0 * snes_callbacks.ROUNDING_FLOOR_RTOL
     assert run([1.0, above] + [above] * NO_PROGRESS_ITERATIONS)[-1] == reasons.DIVERGED_LINE_SEARCH
     # slow progress is not a stall
     assert set(run([1.0] + [0.5 * (1.0 - 1e-6 * k) for k in range(10)])) == {reasons.ITERATING}
     assert run([1.0, 0.1 * rtol])[-1] == reasons.CONVERGED_FNORM_RELATIVE
     assert run([1.0, 0.1 * atol])[-1] == reasons.CONVERGED_FNORM_ABS
-    assert run([1.0, np.nan])[-1] == solvers.NAN_REASON
+    assert run([1.0, np.nan])[-1] == snes_callbacks.NAN_REASON
     assert run([1.0] + [0.9**k for k in range(1, max_it + 1)])[-1] == reasons.DIVERGED_MAX_IT
     # and a real solve still converges through it
     assert problem.solve().converged
@@ -425,7 +426,7 @@ def test_only_a_stalled_energy_step_hands_the_line_search_to_the_residual():
     snes = Snes()
     problem._energy_merit_allowed, problem._last_norm = True, np.inf
     problem._start_iteration(snes, 0)
-    slow = 1.0 - 0.1 * solvers.STALL_RTOL
+    slow = 1.0 - 0.1 * snes_callbacks.STALL_RTOL
     for k, by_energy in enumerate((False, False, False), start=1):
         problem._merit_is_energy = by_energy
         snes.norm *= slow
@@ -547,7 +548,7 @@ def test_amg_default_above_the_size_threshold(monkeypatch):
     solutions = {}
     mesh = None  # one mesh, so that both solutions have one partition
     for name in ("lu", "amg"):
-        monkeypatch.setattr(solvers, "AMG_MIN_DOFS", 10**12 if name == "lu" else 0)
+        monkeypatch.setattr(linear_solver, "AMG_MIN_DOFS", 10**12 if name == "lu" else 0)
         mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
         bcs, _ = _press_bcs(mesh, V, 0.9, -0.03)
         contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
@@ -597,10 +598,10 @@ def test_amg_keeps_its_hierarchy_while_gmres_stays_fast(monkeypatch):
     AMG_KEPT_GROWTH 0 every GMRES needs more iterations than the rule allows, and every
     Jacobian gets a new hierarchy."""
     comm = MPI.COMM_WORLD
-    monkeypatch.setattr(solvers, "AMG_MIN_DOFS", 0)
+    monkeypatch.setattr(linear_solver, "AMG_MIN_DOFS", 0)
     runs, mesh = {}, None
     for name, keep, growth in (("kept", True, 2.0), ("every", False, 2.0), ("zero", True, 0.0)):
-        monkeypatch.setattr(solvers, "AMG_KEPT_GROWTH", growth)
+        monkeypatch.setattr(linear_solver, "AMG_KEPT_GROWTH", growth)
         mesh, V, u, residual, energy = _stacked_blocks(comm, mesh=mesh)
         bcs, push = _press_bcs(mesh, V, 0.9, -0.02)
         contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
@@ -918,7 +919,7 @@ def test_pattern_rebuilt_when_contact_appears(solver):
     if solver == "snes":
         assert steps[-1].timings == problem.timings
         for step in steps:
-            assert set(step.timings) == set(fm.solvers.TIMING_KEYS)
+            assert set(step.timings) == set(system_assembler.TIMING_KEYS)
             assert 0.0 < sum(step.timings.values()) <= step.seconds, step
     else:
         assert all(step.timings == {} for step in steps)

@@ -1,0 +1,234 @@
+"""The linear-solver policy of the contact problems: PETSc options, the kept factorisation,
+the AMG thresholds, the choice of LDL^T or LU, MUMPS helpers.
+
+Importing this module (which ``import fenics_matdepth`` does first) turns PETSc's gemv
+summation of multiple dot products off (:data:`MDOT_GEMV_OPTION`), so that the vectors created
+afterwards sum in a fixed order and a run repeats to the bit.
+"""
+
+from __future__ import annotations
+
+from petsc4py import PETSc
+
+__all__ = [
+    "AMG_KEPT_GROWTH",
+    "AMG_MIN_DOFS",
+    "AMG_OPTIONS",
+    "DEFAULT_OPTIONS",
+    "KEPT_FACTORISATION_OPTIONS",
+    "KEPT_MAX_ITERATIONS",
+    "KEPT_TRIES",
+    "LDLT_WORKSPACE_PERCENT",
+    "LINEAR_SOLVE_FAILED",
+    "MDOT_GEMV_OPTION",
+    "REFACTORISE_ITERATIONS",
+    "SYMMETRY_RTOL",
+    "BackOff",
+    "choose_factorisation",
+    "fix_summation_order",
+    "is_mumps_direct",
+    "set_solver_options",
+]
+
+DEFAULT_OPTIONS = {
+    "snes_type": "newtonls",
+    "snes_linesearch_type": "bt",
+    "snes_rtol": 1e-10,
+    "snes_atol": 1e-12,
+    "snes_stol": 0.0,
+    "snes_max_it": 50,
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+}
+
+#: With ``keep_factorisation=True`` (the default), ContactProblem's direct solver keeps a
+#: factorisation across the Newton iterations of a solve: each Jacobian is solved by flexible
+#: GMRES (right-preconditioned, to 1e-10 of the residual: an exact Newton step) preconditioned
+#: by the last factorisation. A Jacobian is factorised anew after the matrix's pattern was
+#: rebuilt and once GMRES needed more than REFACTORISE_ITERATIONS iterations; a solve starts on
+#: the last solve's factorisation if that solve converged (a load step, a time step or a
+#: pressure update later the Jacobian changed little) and the contact penalty is the same,
+#: otherwise it factorises its first Jacobian. GMRES stops after KEPT_MAX_ITERATIONS, where a kept
+#: factorisation no longer pays (one factorisation costs about 30 GMRES iterations on
+#: benchmarks/bench_factor.py's press, 25k dofs: LDL^T analysis and factorisation 0.84 s, one
+#: substitution 27 ms; about 11 on the knee's coarse leg: 0.18 s against 16 ms), and the solve
+#: goes on from the iterate it had reached, whose Jacobian is factorised. When that happened
+#: KEPT_TRIES times in a solve on the first GMRES after a factorisation, the Jacobian changes
+#: too much from one iteration to the next: the solve factorises every Jacobian from then on,
+#: and the problem's next 1, 2, 4, ... solves do not try (until a kept factorisation pays
+#: again). (Once is common: a load step's first Newton step changes the contact set.) When
+#: GMRES fails on the factorisation a solve started on, the next 1, 2, 4, ... solves factorise
+#: their first Jacobian. Measured:
+#: the press's GMRES took 3 to 11 iterations; the knee's first GMRES on a new factorisation 18
+#: to 61. Giving ``ksp_type`` or ``pc_type`` turns it off.
+REFACTORISE_ITERATIONS = 10
+KEPT_MAX_ITERATIONS = 20
+KEPT_TRIES = 2
+KEPT_FACTORISATION_OPTIONS = {
+    # flexible GMRES keeps the preconditioned vectors: no substitution more to form the
+    # solution, which right-preconditioned GMRES spends on every solve (measured on the knee:
+    # a factorised solve 0.18 to 0.19 s with preonly, 0.21 to 0.23 s with GMRES)
+    "ksp_type": "fgmres",
+    "ksp_pc_side": "right",
+    "ksp_norm_type": "unpreconditioned",
+    "ksp_rtol": 1e-10,
+    "ksp_atol": 0.0,
+    "ksp_max_it": KEPT_MAX_ITERATIONS,
+    "ksp_gmres_restart": KEPT_MAX_ITERATIONS,
+}
+
+#: From this many global dofs on, ContactProblem's default linear solver is GMRES preconditioned
+#: by GAMG with the rigid-body near-nullspace (AMG_OPTIONS) instead of MUMPS LU. Measured with
+#: benchmarks/bench_linear.py on the press's contact Jacobian (CPU seconds of set-up + solve):
+#: 24.7k dofs LU 1.24, GAMG 1.19; 92.3k dofs LU 12.2, GAMG 4.5; 282k dofs GAMG 16.9.
+AMG_MIN_DOFS = 50_000
+#: With ``keep_factorisation=True`` (the default), ContactProblem's default AMG preconditioner
+#: keeps its hierarchy across Newton iterations, as the direct solver keeps its factorisation
+#: (same rules: a new one at a solve's start unless it starts on the last solve's, on a new
+#: pattern, after a GMRES failure): GAMG's set-up is redone once GMRES on the kept hierarchy
+#: needs more than AMG_KEPT_GROWTH times the iterations it needed on a new one. A GAMG set-up
+#: costs about 30 GMRES iterations (the Hertz benchmark, 96k dofs: 1.3 s against 0.04 s, the
+#: Galerkin products PtAP most of it).
+AMG_KEPT_GROWTH = 2.0
+AMG_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_gmres_restart": 200,
+    "ksp_rtol": 1e-9,
+    "ksp_max_it": 1000,
+    "pc_type": "gamg",
+    "pc_gamg_threshold": 0.01,
+}
+
+#: PETSc's options key that makes the multiple dot products of a vector (the orthogonalisation
+#: of GMRES) one BLAS gemv, PETSc's default since 3.21. OpenBLAS's gemv sums in an order that
+#: depends on where the vectors lie in memory, which varies from run to run: with it, two runs
+#: of one script (benchmarks/bench_newton.py) parted in the last bits at the first GMRES on a
+#: kept factorisation and ended with 10 124 or 10 126 active pairs. PETSc's own kernel sums in
+#: a fixed order, at the same speed (measured: 0.56 s for 80 products of 5 to 60 vectors of
+#: 300k entries either way). A vector takes the setting in force when it is created, and
+#: copies of it keep it, so the package sets it off when imported (`fix_summation_order`),
+#: unless it is given (PETSC_OPTIONS, the command line, or PETSc.Options() beforehand).
+MDOT_GEMV_OPTION = "vec_mdot_use_gemv"
+
+
+def fix_summation_order() -> None:
+    """Make the multiple dot products of the vectors created from now on sum in a fixed order
+    (MDOT_GEMV_OPTION off), unless the option was given: a run then repeats to the bit."""
+    options = PETSc.Options()
+    if not options.hasName(MDOT_GEMV_OPTION):
+        options.setValue(MDOT_GEMV_OPTION, "0")
+    # read once, so that PETSc does not report it as unused at exit in a run without vectors
+    options.getBool(MDOT_GEMV_OPTION)
+
+
+fix_summation_order()
+
+
+#: An assembled Jacobian counts as symmetric when no entry differs from its transpose's by more
+#: than this fraction of the matrix's infinity norm (rounding leaves about 1e-16); the
+#: problems' default direct solver then factorises it as LDL^T (MUMPS, ``pc_type cholesky``,
+#: symmetric indefinite) instead of LU: 0.64 s against 0.84 s for the press of
+#: benchmarks/bench_factor.py (25k dofs, CPU seconds; docs/solvers.md).
+SYMMETRY_RTOL = 1e-10
+
+
+def choose_factorisation(pc: PETSc.PC, A: PETSc.Mat) -> bool:
+    """Factorise the symmetric ``A`` as LDL^T, any other as LU (MUMPS both; collective).
+
+    Checks ``A`` for symmetry (to SYMMETRY_RTOL), flags it, and sets ``pc``'s type to
+    ``cholesky`` or ``lu`` accordingly (a change of type redoes the symbolic factorisation).
+    Returns whether ``A`` is symmetric.
+    """
+    symmetric = bool(A.isSymmetric(SYMMETRY_RTOL * A.norm(PETSc.NormType.INFINITY)))
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, symmetric)
+    wanted = "cholesky" if symmetric else "lu"
+    if pc.getType() != wanted:
+        pc.setType(wanted)
+        pc.setFactorSolverType("mumps")
+    return symmetric
+
+
+#: SNES's reason when a linear solve (or the factorisation) failed
+LINEAR_SOLVE_FAILED = PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
+
+#: MUMPS's working space for LDL^T: this percentage above its analysis' estimate (ICNTL(14),
+#: MUMPS's default 20): with pivoting near a singular Jacobian (a body held only by contact)
+#: the 20 % ran out (INFOG(1) = -9) on 2 ranks in several runs of the floating cube of
+#: test_augmented.py, 100 % in none of 12. A failed LDL^T factorisation is retried with LU.
+LDLT_WORKSPACE_PERCENT = 100
+
+
+def is_mumps_direct(pc: PETSc.PC) -> bool:
+    """Whether ``pc`` is a MUMPS factorisation (LU or Cholesky)."""
+    return pc.getType() in ("lu", "cholesky") and pc.getFactorSolverType() == "mumps"
+
+
+class BackOff:
+    """After a failure, the next 1, 2, 4, ... chances are skipped (doubling with each failure
+    in a row), until a success."""
+
+    def __init__(self):
+        self._skip = self._length = 0
+
+    def take(self) -> bool:
+        """Whether this chance may be taken (one chance used either way)."""
+        allowed = self._skip == 0
+        self._skip = max(self._skip - 1, 0)
+        return allowed
+
+    def record(self, failed: bool, succeeded: bool) -> None:
+        """The outcome of a chance taken: a failure lengthens the skip, a success ends it."""
+        if failed:
+            self._length = max(1, 2 * self._length)
+            self._skip = self._length
+        elif succeeded:
+            self._length = 0
+
+
+def set_solver_options(
+    prefix: str, user: dict, num_dofs: int, keep_factorisation: bool
+) -> tuple[bool, bool]:
+    """Put a problem's PETSc options under ``prefix``: the defaults, the linear solver chosen
+    for its size, and the user's options over them.
+
+    The linear solver: GMRES with GAMG (AMG_OPTIONS) from AMG_MIN_DOFS global dofs on, MUMPS
+    (LDL^T or LU, :func:`choose_factorisation`) below, unless the user gives ``ksp_type`` or
+    ``pc_type``; a direct solver keeps its factorisation (KEPT_FACTORISATION_OPTIONS) unless
+    the user gives a linear solver or a preconditioner lag.
+
+    Args:
+        prefix: the problem's options prefix.
+        user: the user's options (set last, so they win).
+        num_dofs: global number of dofs of the problem.
+        keep_factorisation: whether the problem asks to keep factorisations.
+
+    Returns:
+        ``(amg, keep_factorisation)``: whether the default AMG preconditioner was chosen, and
+        whether keeping a factorisation remains possible.
+    """
+    options = dict(DEFAULT_OPTIONS)
+    # a user's linear solver or preconditioner lag comes first
+    keep_factorisation = keep_factorisation and not {
+        "ksp_type", "pc_type", "snes_lag_preconditioner", "snes_lag_jacobian"
+    } & set(user)  # fmt: skip
+    # the default AMG preconditioner (AMG_OPTIONS), which keeps its hierarchy like the
+    # direct solver its factorisation (AMG_KEPT_GROWTH)
+    amg = num_dofs >= AMG_MIN_DOFS and not {"ksp_type", "pc_type"} & set(user)
+    if amg:
+        options.update(AMG_OPTIONS)
+        del options["pc_factor_mat_solver_type"]
+    elif "pc_type" not in user:  # LDL^T or LU, chosen per Jacobian (choose_factorisation)
+        options["mat_mumps_icntl_14"] = LDLT_WORKSPACE_PERCENT
+        if keep_factorisation:
+            options.update(KEPT_FACTORISATION_OPTIONS)
+    opts = PETSc.Options()
+    opts.prefixPush(prefix)
+    for key, value in {**options, **user}.items():
+        opts[key] = value
+    opts.prefixPop()
+    if "mat_mumps_icntl_14" not in user and "mat_mumps_icntl_14" in options:
+        # read once now: MUMPS reads it at the first factorisation, and a problem that
+        # never factorises would otherwise leave it for PETSc to report as unused at exit
+        opts.getInt(prefix + "mat_mumps_icntl_14")
+    return amg, keep_factorisation

@@ -1,0 +1,326 @@
+"""The Newton-iteration callbacks of :class:`~fenics_matdepth.ContactProblem`.
+
+SNES calls them during a solve: the residual and Jacobian (through the problem's
+:class:`~fenics_matdepth.problems.SystemAssembler`), the merit function of the line search
+(the total energy, or ``|F|^2 / 2``), the convergence test, the line-search pre-check that
+replaces a step climbing the energy by the step of a shifted Jacobian, and the start of each
+Newton iteration (the merit function's hand-over, the matrix's rebuild, whether the coming
+Jacobian is factorised or solved on the kept factorisation). They form
+:class:`SNESCallbacks`, a base class of ``ContactProblem``, whose ``__init__`` and ``solve``
+set up the state they read.
+"""
+
+from __future__ import annotations
+
+import time
+
+from petsc4py import PETSc
+
+import numpy as np
+
+from fenics_matdepth import linear_solver
+from fenics_matdepth._compat import set_lag_preconditioner
+
+__all__ = [
+    "MERIT_SWITCH_RTOL",
+    "NAN_REASON",
+    "NO_PROGRESS_ITERATIONS",
+    "NO_PROGRESS_RTOL",
+    "ROUNDING_FLOOR_RTOL",
+    "SHIFT_GROWTH",
+    "SHIFT_START",
+    "SHIFT_TRIES",
+    "STALL_RTOL",
+    "SNESCallbacks",
+]
+
+#: The energy line search hands over to the residual norm once the residual has fallen by
+#: this factor in a solve, or once an iteration changed it by less than STALL_RTOL (relative);
+#: see SNESCallbacks._start_iteration.
+MERIT_SWITCH_RTOL = 1e-5
+STALL_RTOL = 1e-3
+
+#: SNES's reason for a non-finite residual norm (renamed DIVERGED_FUNCTION_NANORINF in newer
+#: PETSc; value -4 in both)
+NAN_REASON = getattr(
+    PETSc.SNES.ConvergedReason,
+    "DIVERGED_FNORM_NAN",
+    getattr(PETSc.SNES.ConvergedReason, "DIVERGED_FUNCTION_NANORINF", -4),
+)
+
+#: ContactProblem stops with DIVERGED_LINE_SEARCH after this many consecutive iterations
+#: that changed the residual norm by less than NO_PROGRESS_RTOL (relative): the line search
+#: is taking steps of no length (measured: a patch-test solve sat at the same residual for 45
+#: iterations until the iteration limit), so a caller (load stepping, the augmented
+#: Lagrangian's update halving) can react at once.
+NO_PROGRESS_ITERATIONS = 3
+NO_PROGRESS_RTOL = 1e-10
+
+#: ... unless the residual had fallen below this fraction of the solve's initial residual
+#: first: then the solve has reached the residual's rounding floor and counts as converged
+#: (CONVERGED_SNORM_RELATIVE: the line search takes steps of no length). Measured on the knee
+#: (coarse leg) from 121 deg on: steps converged quadratically to 2e-9 ... 7e-8 N (forces of
+#: order 100 N in the leg) and stayed there, 1e-10 ... 3e-7 of their initial residuals, and were
+#: cut until the load stepping gave up.
+ROUNDING_FLOOR_RTOL = 1e-6
+
+#: When a Newton step would climb the energy (the Jacobian is indefinite: the iterate is near
+#: a saddle of the energy, an unstable equilibrium), ContactProblem takes the step of
+#: ``J + mu I`` instead (a Hessian modification), mu starting at SHIFT_START times the mean
+#: absolute diagonal of J and growing SHIFT_GROWTH-fold until the factorisation has no
+#: negative pivot and the step goes downhill, at most SHIFT_TRIES factorisations. Measured on
+#: the knee at 90.6 deg (coarse leg): Newton sat at |F| = 3e-2 with one negative pivot and
+#: its step 470 mm long; 1e-6 removed the negative pivot and the energy fell by 0.012 N mm
+#: along the shifted step.
+SHIFT_START = 1e-6
+SHIFT_GROWTH = 10.0
+SHIFT_TRIES = 8
+
+
+class SNESCallbacks:
+    """The SNES callbacks of :class:`~fenics_matdepth.ContactProblem` (its base class; the
+    attributes they use are set up by ``ContactProblem.__init__`` and ``ContactProblem.solve``).
+    """
+
+    def _set_state(self, x: PETSc.Vec) -> None:
+        self.assembler.set_state(x)
+
+    def _residual(self, snes: PETSc.SNES, x: PETSc.Vec, b: PETSc.Vec) -> None:
+        if self._resumed_unchanged:
+            # the solve goes on from the iterate where GMRES failed: b (the SNES's residual
+            # vector), the contact state and the matrix still hold its residual and Jacobian
+            return
+        self._set_state(x)
+        if self._trial_valid and x.equal(self._x_trial):
+            # SNES asks for the residual at the step the line search just accepted, which the
+            # residual merit function (`_objective`) has assembled already
+            self._b_trial.copy(b)
+            self._residuals_reused += 1
+            return
+        if not self.assembler.residual(x, b):
+            # An inadmissible trial state: b holds NaN, which the backtracking line search
+            # answers by shortening the step (and SNES stops if the start is inadmissible).
+            self._trial_valid = False
+            domain_error = getattr(snes, "setFunctionDomainError", None)
+            if domain_error is not None:
+                domain_error()
+            return
+        # kept for the residual merit function, which the line search asks at the step's
+        # start (this point) as well as at its trial points
+        if b.handle != self._b_trial.handle:
+            b.copy(self._b_trial)
+        x.copy(self._x_trial)
+        self._trial_valid = True
+
+    def _jacobian(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat, P: PETSc.Mat) -> None:
+        # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
+        if not self._resumed_unchanged:
+            self.assembler.jacobian(A)
+        self._resumed_unchanged = False
+        if self._choose_factorisation and self._factorise:
+            with self._watch("linear_solve"):
+                linear_solver.choose_factorisation(self.snes.getKSP().getPC(), A)
+
+    def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
+        if not self._merit_is_energy:
+            if self._trial_valid and x.equal(self._x_trial):
+                self._residuals_reused += 1
+            else:
+                self._trial_valid = False
+                self._residual(snes, x, self._b_trial)
+            return 0.5 * self._b_trial.norm() ** 2
+        if np.isfinite(self._energy_value) and x.equal(self._x_energy):
+            self._energies_reused += 1
+            return self._energy_value
+        self._set_state(x)
+        self._energy_value = self.assembler.total_energy()
+        x.copy(self._x_energy)
+        return self._energy_value
+
+    def _converged(self, snes: PETSc.SNES, iteration: int, norms: tuple) -> int:
+        """PETSc's default convergence test (absolute, relative and step tolerances, the
+        iteration limit, divergence and NaN), plus a stop when the line search makes no
+        progress for NO_PROGRESS_ITERATIONS iterations: DIVERGED_LINE_SEARCH, or
+        CONVERGED_SNORM_RELATIVE where the residual had fallen below ROUNDING_FLOOR_RTOL of the
+        initial one (its rounding floor)."""
+        reasons = PETSc.SNES.ConvergedReason
+        xnorm, step_norm, fnorm = norms
+        rtol, atol, stol, max_it = snes.getTolerances()
+        if not np.isfinite(fnorm):
+            return NAN_REASON
+        if iteration == 0:
+            if not self._resuming:
+                self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
+            return reasons.CONVERGED_FNORM_ABS if fnorm < atol else reasons.ITERATING
+        if fnorm < atol:
+            return reasons.CONVERGED_FNORM_ABS
+        if fnorm <= rtol * self._initial_norm:
+            return reasons.CONVERGED_FNORM_RELATIVE
+        if step_norm < stol * xnorm:
+            return reasons.CONVERGED_SNORM_RELATIVE
+        divergence = snes.getDivergenceTolerance()
+        if divergence > 0.0 and fnorm > divergence * self._initial_norm:
+            return reasons.DIVERGED_DTOL
+        stalled = abs(fnorm - self._previous_norm) <= NO_PROGRESS_RTOL * self._previous_norm
+        self._no_progress = self._no_progress + 1 if stalled else 0
+        self._previous_norm = fnorm
+        if self._no_progress >= NO_PROGRESS_ITERATIONS:
+            if fnorm <= ROUNDING_FLOOR_RTOL * self._initial_norm:
+                return reasons.CONVERGED_SNORM_RELATIVE
+            return reasons.DIVERGED_LINE_SEARCH
+        if iteration + self._iteration_offset >= max_it:
+            return reasons.DIVERGED_MAX_IT
+        return reasons.ITERATING
+
+    def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> bool:
+        """Line-search pre-check: the energy judges this step only if the step goes downhill
+        and the Dirichlet dofs already sit on their values.
+
+        SNES moves to ``x - lambda y`` with ``J y = F``; the energy's slope along that path is
+        ``-F . y``, negative when J is positive definite. Where J is indefinite (deep, sharp
+        overlaps; an iterate near a saddle of the energy), ``F . y`` can be negative: the
+        Newton step climbs the energy and no step length decreases it. With the Dirichlet dofs
+        on their values and a direct solver, that step is replaced by the step of ``J + mu I``
+        (``_shifted_direction``), which goes downhill and is judged by the energy; otherwise it
+        is judged by ``|F|^2 / 2``, which the Newton step always decreases for small enough
+        steps. The same holds while the step still moves Dirichlet dofs onto their values:
+        prescribing a displacement raises the energy, so only the residual norm can judge that
+        step. Returns whether ``y`` was changed.
+        """
+        downhill = y.dot(self._b) > 0.0
+        if not downhill and self._bcs_met and self._shifted_direction(y):
+            self._merit_is_energy = True
+            return True
+        self._merit_is_energy = self._energy_merit_allowed and self._bcs_met and downhill
+        return False
+
+    def _shifted_direction(self, y: PETSc.Vec) -> bool:
+        """Overwrite ``y`` with ``(J + mu I)^-1 F`` for the smallest mu of SHIFT_START *
+        SHIFT_GROWTH^k (relative to the mean absolute diagonal of J) whose factorisation has no
+        negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective).
+        Returns False, leaving ``y``, where the linear solver is not MUMPS or no mu up to the
+        last try gives such a step."""
+        solver_pc = self.snes.getKSP().getPC()
+        if not linear_solver.is_mumps_direct(solver_pc):
+            return False
+        pc_type = solver_pc.getType()
+        A = self._A
+        diagonal = A.getDiagonal()
+        scale = diagonal.norm(PETSc.NormType.NORM_1) / max(diagonal.getSize(), 1)
+        diagonal.destroy()
+        B = A.copy()
+        ksp = PETSc.KSP().create(A.getComm())
+        trial = y.duplicate()
+        pc = factor = None
+        try:
+            ksp.setType("preonly")
+            ksp.setOperators(B)
+            pc = ksp.getPC()
+            pc.setType(pc_type)
+            pc.setFactorSolverType("mumps")
+            pc.setFactorSetUpSolverType()
+            factor = pc.getFactorMatrix()
+            factor.setMumpsIcntl(13, 1)  # negative pivots counted on the root node too
+            factor.setMumpsIcntl(14, linear_solver.LDLT_WORKSPACE_PERCENT)
+            mu, added = SHIFT_START * scale, 0.0
+            for _ in range(SHIFT_TRIES):
+                B.shift(mu - added)  # the matrix's new state makes the PC factorise again
+                added = mu
+                with self._watch("linear_solve"):
+                    ksp.solve(self._b, trial)
+                negative = factor.getMumpsInfog(12) if pc_type == "cholesky" else 0
+                if ksp.getConvergedReason() > 0 and negative == 0 and trial.dot(self._b) > 0.0:
+                    trial.copy(y)
+                    self.shifted_steps += 1
+                    return True
+                mu *= SHIFT_GROWTH
+            return False
+        finally:
+            # the borrowed PC and factor go before their KSP: on more than one rank petsc4py
+            # defers the destruction of an object whose last reference is a Python wrapper to
+            # PETSc's garbage (freed only by PETSc.garbage_cleanup), and a PC kept by its
+            # wrapper past ksp.destroy() held a MUMPS factorisation there per shifted step
+            # (the knee on 2 ranks grew by GBs)
+            del pc, factor
+            trial.destroy()
+            ksp.destroy()
+            B.destroy()
+
+    def _start_iteration(self, snes: PETSc.SNES, iteration: int) -> None:
+        """Before each Newton step's Jacobian: switch the line search's merit function if the
+        energy stalled; rebuild the matrix if contact left its pattern.
+
+        Near the solution a Newton step changes the energy by about ``r^2 / k`` (r the
+        residual, k a stiffness), which falls below the energy's rounding error (relative to
+        the stress scale, not to the energy, which may be near zero) while r is still well
+        above the tolerance; the energy line search then cuts every step to almost nothing and
+        Newton stalls. So once the residual has fallen by MERIT_SWITCH_RTOL, or an iteration
+        whose step the energy judged stalled, the line search judges steps by ``|F|^2 / 2``
+        instead, which a Newton step in its quadratic range decreases. (Measured on the block
+        presses of the tests and benchmark: the energy stops resolving steps at residuals of
+        1e-7 to 1e-8 of the initial one.) A slow step judged by ``|F|^2 / 2``, say while the
+        Dirichlet dofs move onto their values, says nothing about the energy's rounding and
+        keeps the energy for the steps after.
+        """
+        norm = snes.getFunctionNorm()
+        if iteration == 0:
+            if not self._resuming:
+                self._first_norm = norm
+        elif norm <= MERIT_SWITCH_RTOL * self._first_norm or (
+            # only a step the energy judged tells that the energy stalled
+            self._merit_is_energy and abs(norm - self._last_norm) <= STALL_RTOL * self._last_norm
+        ):
+            self._energy_merit_allowed = False
+        self._last_norm = norm
+        x = snes.getSolution()
+        if self._energy is not None:
+            scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
+            self._bcs_met = self.assembler.bc_offset(x) <= 1e-12 * scale
+        self._set_state(x)
+
+        def register(A: PETSc.Mat) -> None:
+            snes.setJacobian(self._jacobian, A, A)
+
+        rebuilt = self.assembler.rebuild_matrix_if_needed(register)
+        self._resumed_unchanged = self._resumed_unchanged and not rebuilt
+        if self._keep_factorisation:
+            # factorise at a solve's start (unless it starts on the last solve's
+            # factorisation), on a new pattern, and once the kept factorisation no longer
+            # pays (GMRES iterations are counted on every rank alike)
+            gmres_iterations = self.snes.getKSP().getIterationNumber()
+            if iteration > 0 and not self._factorise:
+                self._kept_converged += 1  # (SNES stops where GMRES failed: solve())
+            if iteration > 0 and self._factorise:
+                self._fresh_iterations = gmres_iterations
+            if self._amg:
+                growth = linear_solver.AMG_KEPT_GROWTH
+                no_longer_pays = gmres_iterations > growth * self._fresh_iterations
+            else:
+                no_longer_pays = gmres_iterations > linear_solver.REFACTORISE_ITERATIONS
+            self._factorise = (
+                (iteration == 0 and (self._resuming or not self._carried))
+                or rebuilt
+                or not self._may_keep
+                or no_longer_pays
+            )
+            set_lag_preconditioner(self.snes, -2 if self._factorise else -1)
+            if self._factorise:
+                self._factorisations += 1
+                self._kept_since_factorisation = 0
+            else:
+                self._kept_since_factorisation += 1
+
+    def _count_kept_failure(self) -> None:
+        """Count a GMRES failure on a kept factorisation. Once the first GMRES on a new
+        factorisation failed KEPT_TRIES times, the rest of the solve factorises every
+        Jacobian."""
+        self._kept_failed += 1
+        if self._kept_since_factorisation == 1:
+            self._failed_tries += 1
+            self._may_keep = self._failed_tries < linear_solver.KEPT_TRIES
+
+    def _ksp_started(self, ksp, b, x) -> None:
+        self._ksp_start = time.perf_counter()
+
+    def _ksp_finished(self, ksp, b, x) -> None:
+        self._watch.totals["linear_solve"] += time.perf_counter() - self._ksp_start
