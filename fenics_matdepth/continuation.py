@@ -59,8 +59,10 @@ class PenaltyContinuation:
     problem's whole iteration limit), until the factor would fall below ``min_growth``. A first
     stage that fails is retried from the starting state one growth factor higher (at the
     latest at the target: the plain solve). If that fails too, or the retries run out, ``u`` is
-    restored to where the solve started, so load stepping can cut the step. The operator's
-    penalty is the target after every :meth:`solve`, converged or not.
+    restored to where the solve started, so load stepping can cut the step. The operator holds
+    the target from construction on; each stage sets its own penalty for its solve only
+    (:meth:`~fenics_matdepth.ContactOperator.penalty_set_to`), so after every :meth:`solve`,
+    converged or not, the penalty is the target again.
 
     To combine with the other drivers: ``PenaltyContinuation(RigidModeDamping(problem, ...))``
     for a body free until contact (the first stage runs the damped solves, the later ones the
@@ -122,6 +124,7 @@ class PenaltyContinuation:
         self.problem = problem
         self.u = problem.u
         self.contact = contact
+        contact.penalty = self.target
         self.history: list[ContinuationStage] = []
         self.total_newton_iterations = 0
         self.total_stages = 0
@@ -150,12 +153,11 @@ class PenaltyContinuation:
         solve its undamped problem: after a converged stage contact holds the body, and the
         damped solves would only repeat (measured on the Hertz benchmark at res 1.0, 100 E/h:
         4 to 6 damped solves per stage)."""
-        self.contact.penalty = penalty
         own = own_rtol(self.problem)
         rtol = self.stage_rtol if penalty < self.target else None
         atol = None if first_norm is None or own is None else own * first_norm
         try:
-            with looser_tolerances(self.problem, rtol, atol):
+            with self.contact.penalty_set_to(penalty), looser_tolerances(self.problem, rtol, atol):
                 solver = self.problem
                 if undamped and isinstance(solver, RigidModeDamping):
                     solver = solver.problem
@@ -188,50 +190,47 @@ class PenaltyContinuation:
         growth = self.growth
         penalty = min(self.start, self.target)
         first_norm, retry = None, False
-        try:
-            while True:
-                # after a failed stage every stage solves the wrapped solver as given
-                result = self._stage(penalty, first_norm, undamped=last is not None and not retry)
-                if result is not None:
-                    if first_norm is None and len(result.residual_norms):
-                        first_norm = float(result.residual_norms[0])
-                    results.append(result)
-                    for key, seconds in getattr(self.problem, "timings", {}).items():
-                        self.timings[key] = self.timings.get(key, 0.0) + seconds
-                ok = result is not None and result.converged
-                self.history.append(
-                    ContinuationStage(
-                        penalty,
-                        0 if result is None else result.iterations,
-                        ok,
-                        self.contact.max_penetration() if ok else np.nan,
-                    )
+        while True:
+            # after a failed stage every stage solves the wrapped solver as given
+            result = self._stage(penalty, first_norm, undamped=last is not None and not retry)
+            if result is not None:
+                if first_norm is None and len(result.residual_norms):
+                    first_norm = float(result.residual_norms[0])
+                results.append(result)
+                for key, seconds in getattr(self.problem, "timings", {}).items():
+                    self.timings[key] = self.timings.get(key, 0.0) + seconds
+            ok = result is not None and result.converged
+            self.history.append(
+                ContinuationStage(
+                    penalty,
+                    0 if result is None else result.iterations,
+                    ok,
+                    self.contact.max_penetration() if ok else np.nan,
                 )
-                if ok:
+            )
+            if ok:
+                if penalty >= self.target:
+                    converged = True
+                    break
+                last = (self.u.x.array.copy(), penalty)
+            else:
+                self.total_retries += 1
+                retry = True
+                if last is None:
+                    # the start is too soft for this state: start one growth factor higher
+                    # (at the latest the target, the plain solve)
                     if penalty >= self.target:
-                        converged = True
                         break
-                    last = (self.u.x.array.copy(), penalty)
-                else:
-                    self.total_retries += 1
-                    retry = True
-                    if last is None:
-                        # the start is too soft for this state: start one growth factor higher
-                        # (at the latest the target, the plain solve)
-                        if penalty >= self.target:
-                            break
-                        self.u.x.array[:] = start_state
-                        penalty, first_norm = min(penalty * self.growth, self.target), None
-                        continue
-                    growth = np.sqrt(growth)
-                    if growth < self.min_growth:
-                        break
-                    self.u.x.array[:] = last[0]
-                penalty = min(last[1] * growth, self.target)
-                if penalty > self.target * (1.0 - 1e-12):
-                    penalty = self.target
-        finally:
-            self.contact.penalty = self.target
+                    self.u.x.array[:] = start_state
+                    penalty, first_norm = min(penalty * self.growth, self.target), None
+                    continue
+                growth = np.sqrt(growth)
+                if growth < self.min_growth:
+                    break
+                self.u.x.array[:] = last[0]
+            penalty = min(last[1] * growth, self.target)
+            if penalty > self.target * (1.0 - 1e-12):
+                penalty = self.target
         # the reason is the last stage's that solved
         out = SolveResult.merged(results, converged, results[-1].reason if results else -1)
         self.total_newton_iterations += out.iterations

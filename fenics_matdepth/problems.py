@@ -282,10 +282,11 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._kept_converged = self._kept_failed = self._failed_tries = 0
         # solves that factorise every Jacobian after keeping did not pay
         self._keep_backoff = linear_solver.BackOff()
-        # the contact penalty of the last solve if it converged (None otherwise): the next
-        # solve may start on its factorisation; whether this solve did; solves that factorise
-        # their first Jacobian after a start on the last factorisation failed
-        self._carried_penalty = None
+        # the operator's penalty revision at the end of the last solve if it converged (None
+        # otherwise): the next solve at the same penalty may start on its factorisation;
+        # whether this solve did; solves that factorise their first Jacobian after a start on
+        # the last factorisation failed
+        self._carried_revision = None
         self._carried = False
         self._carry_backoff = linear_solver.BackOff()
         # the solve goes on from the iterate reached (a kept factorisation's GMRES failed)
@@ -330,9 +331,9 @@ class ContactProblem(SNESCallbacks, _Releasable):
         may_carry = self._carry_backoff.take()
         self._carried = (
             self._keep_factorisation and self._may_keep and may_carry
-            and self.contact.penalty == self._carried_penalty
+            and self.contact.penalty_revision == self._carried_revision
         )  # fmt: skip
-        self._carried_penalty = None  # (until this solve converges)
+        self._carried_revision = None  # (until this solve converges)
         carried_failed = False
         history = []
         try:
@@ -386,7 +387,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self.timings = dict(self._watch.totals)
         reason = int(self.snes.getConvergedReason())
         if reason > 0:
-            self._carried_penalty = self.contact.penalty
+            self._carried_revision = self.contact.penalty_revision
         result = SolveResult(
             reason > 0, reason, self._iteration_offset, np.asarray(history, dtype=float),
             self.assembler.rejected_states, self.min_det_F(), self.shifted_steps,

@@ -24,6 +24,7 @@ in the global block numbering of its index map; the dof of component c of vertex
 
 from __future__ import annotations
 
+import contextlib
 import typing
 
 from mpi4py import MPI
@@ -135,7 +136,9 @@ class ContactOperator:
     @property
     def penalty(self) -> float:
         """The penalty parameter eps (pressure / length); assignable between solves (the next
-        evaluation uses the new value, e.g. for penalty continuation)."""
+        evaluation uses the new value). The operator is the one owner of the penalty: a solver
+        that must know whether it changed reads :attr:`penalty_revision`, and a temporary
+        value is set with :meth:`penalty_set_to`."""
         return self._penalty
 
     @penalty.setter
@@ -143,8 +146,27 @@ class ContactOperator:
         value = float(value)
         if not np.isfinite(value) or value <= 0.0:
             raise ValueError(f"penalty must be a positive number (pressure/length), got {value}")
+        if value != getattr(self, "_penalty", None):
+            self._penalty_revision = getattr(self, "_penalty_revision", -1) + 1
         self._penalty = value
         self._cache.clear()  # energies, gradients and Hessians scale with eps
+
+    @property
+    def penalty_revision(self) -> int:
+        """How many times the penalty has changed value since the operator was built: equal
+        revisions mean the same penalty (and so the same contact stiffness at one state)."""
+        return self._penalty_revision
+
+    @contextlib.contextmanager
+    def penalty_set_to(self, value: float) -> typing.Iterator[ContactOperator]:
+        """The penalty ``value`` inside a ``with`` block, the one before restored after it
+        (penalty continuation solves its stages this way)."""
+        before = self._penalty
+        self.penalty = value
+        try:
+            yield self
+        finally:
+            self.penalty = before
 
     @property
     def pair_skin(self) -> float:
