@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from fenics_matdepth.contact.kernels import _area_pairs, _area_pairs_into, _collocation_pairs
-from fenics_matdepth.geometry.clip import _intersect_pairs
+from fenics_matdepth.geometry.intersect import intersect_pairs
 
 TARGETS = {
     "intersection": 20e6,
@@ -84,11 +84,11 @@ def main() -> None:
     npairs = args.pairs
     x, depth, tri, tet, pairs = candidate_pairs(npairs)
     flags = np.empty(npairs, dtype=bool)
-    hit = _intersect_pairs(x, tri, tet, pairs, pairs, flags)
+    hit = intersect_pairs(x, tri, tet, pairs, pairs, flags)
     print(f"pairs: {npairs}, intersecting: {hit} ({100.0 * hit / npairs:.1f} %)")
     gx, gtri, gtet, gpair_tri, gpair_tet = grouped_pairs(npairs)
     gflags = np.empty(len(gpair_tri), dtype=bool)
-    ghit = _intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags)
+    ghit = intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags)
     print(
         f"grouped: {len(gpair_tri)} pairs of {len(gtri)} triangles, intersecting: {ghit} "
         f"({100.0 * ghit / len(gpair_tri):.1f} %)"
@@ -106,11 +106,11 @@ def main() -> None:
     no_hess = np.empty((0, 21, 21))
     rates = {
         "intersection": best_rate(
-            lambda: _intersect_pairs(x, tri, tet, pairs, pairs, flags), npairs, args.repeat
+            lambda: intersect_pairs(x, tri, tet, pairs, pairs, flags), npairs, args.repeat
         ),
         # the same test on candidates grouped by triangle (per-triangle work done once a group)
         "intersection, grouped": best_rate(
-            lambda: _intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags),
+            lambda: intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags),
             len(gpair_tri),
             args.repeat,
         ),

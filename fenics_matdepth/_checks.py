@@ -301,7 +301,8 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
         ValueError: on every rank, naming the problem and the fix.
     """
     from fenics_matdepth.contact.kernels import _area_pairs_max_depth, _intersecting
-    from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+    from fenics_matdepth.geometry.boxes import element_boxes, exclude_shared_vertex_pairs
+    from fenics_matdepth.geometry.bvh import AABBTree
 
     surface = contact.surface  # held numbering (see fenics_matdepth.contact.surface)
     deepest = np.zeros(contact.num_bodies)

@@ -339,7 +339,7 @@ def test_candidate_pairs_serve_later_updates_within_the_skin():
     the intersecting pairs are that search's, while fewer searches were made than updates."""
     from fenics_matdepth.contact import pairs
     from fenics_matdepth.contact.kernels import _intersecting
-    from fenics_matdepth.geometry.bvh import overlapping_pairs
+    from fenics_matdepth.geometry.boxes import overlapping_pairs
 
     comm = MPI.COMM_WORLD
     _, V, u, op = _setup(comm, "area")

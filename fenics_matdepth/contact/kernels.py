@@ -33,13 +33,13 @@ from fenics_matdepth.geometry.clip import (
     CLIP_SHIFT,
     MAX_POLYGON_VERTICES,
     SHIFT_TANGENT,
-    _clip,
-    _edges_and_normal,
-    _intersect_pairs,
-    _tet_gradients,
-    _triangle_area2,
-    _triangle_rows,
+    clip_triangle,
+    edges_and_normal,
+    tet_gradients,
+    triangle_area2,
+    triangle_rows,
 )
+from fenics_matdepth.geometry.intersect import intersect_pairs
 
 __all__ = [
     "augmented_pair_energy",
@@ -313,7 +313,7 @@ def _clip_shift_jacobian(xs, ds):
     L`` and, for a move ``e`` of corner 0, 1, 2: ``(da, dn) = (-e, e x (a - b))``, ``(e, e x
     b)``, ``(0, a x e)`` (``b = x2 - x0``). Called only for triangles of non-zero area.
     """
-    ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(xs)
+    ax, ay, az, bx, by, bz, nx, ny, nz = edges_and_normal(xs)
     # n x a
     wx = ny * az - nz * ay
     wy = nz * ax - nx * az
@@ -468,13 +468,13 @@ def _area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, he
         tri_state,
     ) = work
     # a contributing pair writes every entry of its outputs; the others are zeroed here
-    a2 = _triangle_area2(xs)
+    a2 = triangle_area2(xs)
     if a2 == 0.0:
         return _no_contribution(grad, hess, p, 21, want_grad, want_hess)
-    if _tet_gradients(xt, grads) == 0.0:
+    if tet_gradients(xt, grads) == 0.0:
         return _no_contribution(grad, hess, p, 21, want_grad, want_hess)
-    _triangle_rows(xs, xt, grads, lam)
-    n = _clip(lam, mu, vlab, elab)
+    triangle_rows(xs, xt, grads, lam)
+    n = clip_triangle(lam, mu, vlab, elab)
     if n < 3:
         return _no_contribution(grad, hess, p, 21, want_grad, want_hess)
     area = 0.5 * a2
@@ -1127,9 +1127,9 @@ def _area_pairs_summed(
 @njit(cache=True, fastmath=_FMA)
 def _intersecting(x, tri, tet, pair_tri, pair_tet):
     """Indices of the pairs whose triangle meets the tetrahedron (the exact test of
-    ``geometry.clip``), in order."""
+    ``geometry.intersect``), in order."""
     flags = np.empty(pair_tri.shape[0], dtype=np.bool_)
-    na = _intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
+    na = intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
     active = np.empty(na, dtype=INDEX)
     m = 0
     for p in range(pair_tri.shape[0]):
@@ -1267,7 +1267,7 @@ def _area_pairs_augmented(
 @njit(cache=True, fastmath=_FMA)
 def _polygon_work():
     """Buffers of `_sub_polygon`: xs (3, 3), xt (4, 3), dt (4,), grads (4, 3), lam (3, 4),
-    mu, vlab, elab (the clipped polygon, as `_clip` fills them) and gi (3,)."""
+    mu, vlab, elab (the clipped polygon, as `clip_triangle` fills them) and gi (3,)."""
     return (
         np.empty((3, 3), dtype=FLOAT),
         np.empty((4, 3), dtype=FLOAT),
@@ -1287,21 +1287,22 @@ def _gather_triangle(x, tri, t, xs):
     for a in range(3):
         for r in range(3):
             xs[a, r] = x[tri[t, a], r]
-    return _triangle_area2(xs)
+    return triangle_area2(xs)
 
 
 @njit(cache=True, fastmath=_FMA)
 def _sub_polygon(x, depth, tet, k, s, split, work):
     """Clip the triangle in ``work[0]`` against tetrahedron k (sub-tetrahedron s when split):
-    the polygon in ``work[5]`` (parameter coordinates on the triangle, as `_clip` gives them)
-    and, in ``work[8]``, the depth ``g_K`` at the triangle's corners, extended affinely over
-    the parameter simplex. Returns the polygon's vertex count (0 for a flat tetrahedron)."""
+    the polygon in ``work[5]`` (parameter coordinates on the triangle, as `clip_triangle` gives
+    them) and, in ``work[8]``, the depth ``g_K`` at the triangle's corners, extended affinely
+    over the parameter simplex. Returns the polygon's vertex count (0 for a flat
+    tetrahedron)."""
     xs, xt, dt, grads, lam, mu, vlab, elab, gi = work
     _gather_tet(x, depth, tet, k, s, split, xt, dt)
-    if _tet_gradients(xt, grads) == 0.0:
+    if tet_gradients(xt, grads) == 0.0:
         return 0
-    _triangle_rows(xs, xt, grads, lam)
-    n = _clip(lam, mu, vlab, elab)
+    triangle_rows(xs, xt, grads, lam)
+    n = clip_triangle(lam, mu, vlab, elab)
     for i in range(3):
         gi[i] = lam[i, 0] * dt[0] + lam[i, 1] * dt[1] + lam[i, 2] * dt[2] + lam[i, 3] * dt[3]
     return n
@@ -1479,7 +1480,7 @@ def _point_depths(x, depth, tet, points, pair_point, pair_tet):
         best = 0.0
         for s in range(4 if split else 1):
             _gather_tet(x, depth, tet, k, s, split, xt, dt)
-            if _tet_gradients(xt, grads) == 0.0:
+            if tet_gradients(xt, grads) == 0.0:
                 continue
             total = 0.0
             for j in range(1, 4):
@@ -1506,7 +1507,7 @@ def _collocation_pair(xa, xt, dt, weight, penalty, want_grad, want_hess, work, g
     """
     _no_contribution(grad, hess, p, 15, want_grad, want_hess)
     grads, lam, gg, dg = work
-    if _tet_gradients(xt, grads) == 0.0:
+    if tet_gradients(xt, grads) == 0.0:
         return 0.0
     s = 0.0
     for j in range(1, 4):

@@ -44,7 +44,7 @@ from fenics_matdepth.contact.kernels import (
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
-from fenics_matdepth.geometry.bvh import overlapping_pairs
+from fenics_matdepth.geometry.boxes import overlapping_pairs
 
 __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 

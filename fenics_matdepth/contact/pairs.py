@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from fenics_matdepth.contact.surface import ContactSurface
-from fenics_matdepth.geometry.bvh import element_boxes, exclude_shared_vertex_pairs
-from fenics_matdepth.geometry.clip import _near_pairs
+from fenics_matdepth.geometry.boxes import element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.intersect import near_pairs as _near_pairs
 
 __all__ = ["candidate_pairs", "pair_vertices", "pattern_keys"]
 
