@@ -300,7 +300,10 @@ def check_contact_state(contact, allow_reference_overlap: bool = False) -> None:
     Raises:
         ValueError: on every rank, naming the problem and the fix.
     """
-    from fenics_matdepth.contact.kernels import _area_pairs_max_depth, _intersecting
+    from fenics_matdepth.contact.kernels.drivers import intersecting as _intersecting
+    from fenics_matdepth.contact.kernels.polygon import (
+        area_pairs_max_depth as _area_pairs_max_depth,
+    )
     from fenics_matdepth.geometry.boxes import element_boxes, exclude_shared_vertex_pairs
     from fenics_matdepth.geometry.bvh import AABBTree
 

@@ -27,13 +27,10 @@ from test_self_contact import LENGTH, THICKNESS, WIDTH, _end_motion
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_into,
-    _area_pairs_max_depth,
-    collocation_energy,
-    pair_energy,
-)
+from fenics_matdepth.contact.kernels import collocation_energy, pair_energy
+from fenics_matdepth.contact.kernels.drivers import area_pairs as _area_pairs
+from fenics_matdepth.contact.kernels.drivers import area_pairs_into as _area_pairs_into
+from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth as _area_pairs_max_depth
 from fenics_matdepth.contact.operator import ContactOperator, DepthDeficiencyWarning
 from fenics_matdepth.depth import count_depth_deficient, depth_deficient_tets
 

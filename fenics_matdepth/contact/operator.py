@@ -32,16 +32,18 @@ from fenics_matdepth._checks import check_contact_mesh, check_contact_state
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.contact import assembly, pairs
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_augmented,
-    _area_pairs_max_depth,
-    _area_pairs_pressure_moments,
-    _area_pairs_summed,
-    _collocation_pairs,
-    _intersecting,
-    _point_depths,
+from fenics_matdepth.contact.kernels.augmented import (
+    area_pairs_augmented as _area_pairs_augmented,
 )
+from fenics_matdepth.contact.kernels.augmented import (
+    area_pairs_pressure_moments as _area_pairs_pressure_moments,
+)
+from fenics_matdepth.contact.kernels.collocation import collocation_pairs as _collocation_pairs
+from fenics_matdepth.contact.kernels.collocation import point_depths as _point_depths
+from fenics_matdepth.contact.kernels.drivers import area_pairs as _area_pairs
+from fenics_matdepth.contact.kernels.drivers import area_pairs_summed as _area_pairs_summed
+from fenics_matdepth.contact.kernels.drivers import intersecting as _intersecting
+from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth as _area_pairs_max_depth
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
 from fenics_matdepth.geometry.boxes import overlapping_pairs
