@@ -24,7 +24,7 @@ energy; gradients in energy / length, Hessians in energy / length^2.
 
 Modules, one concept each:
 
-* `area`: one area pair (`area.area_pair`) and its work arrays; its derivative helpers
+* `area`: one area pair (`area.area_pair`) and its named work arrays; its derivative helpers
   in `area_derivatives`;
 * `split`: tetrahedra split around their centroid (thin layers);
 * `drivers`: the area kernel over many pairs (plain, into preallocated arrays, summed into

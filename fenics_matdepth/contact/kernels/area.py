@@ -9,6 +9,8 @@ interleaved. The derivative helpers are in `fenics_matdepth.contact.kernels.area
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -29,40 +31,71 @@ from fenics_matdepth.geometry.clip import (
     triangle_rows,
 )
 
-__all__ = ["area_pair", "area_work", "no_contribution"]
+__all__ = ["AreaWork", "area_pair", "area_work", "no_contribution"]
 
 _NV = MAX_POLYGON_VERTICES
 
 
+class AreaWork(NamedTuple):
+    """Scratch arrays of one area-integration kernel call (`area_work`, allocated once per
+    driver call), by name: ``Lam`` is the (3, 4) barycentric matrix of the triangle's corners
+    in the tetrahedron, ``mu_k`` the polygon vertices, ``G = Lam @ d`` (see `area_pair`)."""
+
+    grads: np.ndarray  #: (4, 3) barycentric gradients of the tetrahedron
+    lam: np.ndarray  #: (3, 4) Lam
+    mu: np.ndarray  #: (2, nv, 3) the clipper's polygon buffers
+    vertex_labels: np.ndarray  #: (2, nv, 2) the two lines through each polygon vertex
+    edge_labels: np.ndarray  #: (2, nv) the line of each polygon edge
+    dmu_dlam: np.ndarray  #: (nv, 3, 6) d mu_k / d Lam, live columns only
+    dphi_dmu: np.ndarray  #: (nv, 3) d Phi / d mu_k
+    dphi_dlam: np.ndarray  #: (12,) d Phi / d Lam
+    d2phi_dlam2: np.ndarray  #: (12, 12) d2 Phi / d Lam2
+    live_columns: np.ndarray  #: (nv, 6) Lam index of the live columns of dmu_dlam
+    phi_blocks: np.ndarray  #: (4, nv, 3, 3) Hessian blocks of Phi over (mu_k, G)
+    tri_block: np.ndarray  #: (9, 9) T: Hessian of Phi w.r.t. the triangle vertices
+    tri_tet_block: np.ndarray  #: (9, 12) V: triangle-tetrahedron block of J^T H_Lam J
+    lam_tri_block: np.ndarray  #: (12, 9) U = H_Lam (I (x) grads); scratch of the Phi Hessian
+    dphi_dx: np.ndarray  #: (21,) d Phi / d x
+    darea_dx: np.ndarray  #: (9,) d A / d x
+    d2area_dx2: np.ndarray  #: (9, 9) d2 A / d x2
+    dphi_dcorner: np.ndarray  #: (3, 3) W[i] = sum_j dPhi/dLam_ij grad lambda_j
+    dnormal_dx: np.ndarray  #: (9, 3) dn[3 i + a] = d (triangle normal) / d x_ia
+    num_live_columns: np.ndarray  #: (nv,) number of live columns per polygon vertex
+    scratch: np.ndarray  #: (3, 9) vectors of an edge integrand's Hessian; scratch
+    dshift_dx: np.ndarray  #: (3, 9) d (clip shift) / d x_tri
+    #: (3,) the triangle cache: [this pair's triangle (-1: unknown), the triangle whose
+    #: darea_dx, d2area_dx2, dnormal_dx and dshift_dx hold, what they hold (1: to the
+    #: gradient, 2: and d2 A)]; the drivers name the pair's triangle in ``triangle_cache[0]``
+    triangle_cache: np.ndarray
+
+
 @njit(cache=True, fastmath=FMA)
 def area_work():
-    """Scratch arrays of one area-integration kernel call (allocated once per driver call)."""
-    return (
-        np.empty((4, 3), dtype=FLOAT),  # 0 grads: barycentric gradients of the tetrahedron
-        np.empty((3, 4), dtype=FLOAT),  # 1 lam
-        np.empty((2, _NV, 3), dtype=FLOAT),  # 2 mu (clipper buffers)
-        np.empty((2, _NV, 2), dtype=np.int64),  # 3 vertex labels
-        np.empty((2, _NV), dtype=np.int64),  # 4 edge labels
-        np.empty((_NV, 3, 6), dtype=FLOAT),  # 5 d mu_k / d Lam, live columns only
-        np.empty((_NV, 3), dtype=FLOAT),  # 6 d Phi / d mu_k
-        np.empty(12, dtype=FLOAT),  # 7 d Phi / d Lam
-        np.empty((12, 12), dtype=FLOAT),  # 8 d2 Phi / d Lam2
-        np.empty((_NV, 6), dtype=np.int64),  # 9 Lam index of the live columns of 5
-        np.empty((4, _NV, 3, 3), dtype=FLOAT),  # 10 Hessian blocks over (mu_k, G)
-        np.empty((9, 9), dtype=FLOAT),  # 11 T: Hessian of Phi w.r.t. triangle vertices
-        np.empty((9, 12), dtype=FLOAT),  # 12 V: triangle-tetrahedron block of J^T H_Lam J
-        np.empty((12, 9), dtype=FLOAT),  # 13 U
-        np.empty(21, dtype=FLOAT),  # 14 d Phi / d x
-        np.empty(9, dtype=FLOAT),  # 15 d A / d x
-        np.empty((9, 9), dtype=FLOAT),  # 16 d2 A / d x2
-        np.empty((3, 3), dtype=FLOAT),  # 17 W[i] = sum_j dPhi/dLam_ij grad lambda_j
-        np.empty((9, 3), dtype=FLOAT),  # 18 dn[3 i + a] = d (triangle normal) / d x_ia
-        np.empty(_NV, dtype=np.int64),  # 19 number of live columns per vertex
-        np.empty((3, 9), dtype=FLOAT),  # 20 vectors of an edge integrand's Hessian; scratch
-        np.empty((3, 9), dtype=FLOAT),  # 21 d (clip shift) / d x_tri
-        # 22 the triangle cache: [this pair's triangle (-1: unknown), the triangle whose
-        # quantities 15, 16, 18 and 21 hold, what they hold (1: to the gradient, 2: and d2 A)]
-        np.full(3, -1, dtype=np.int64),
+    """The scratch arrays of one area-integration kernel call (allocated once per driver call)."""
+    return AreaWork(
+        grads=np.empty((4, 3), dtype=FLOAT),
+        lam=np.empty((3, 4), dtype=FLOAT),
+        mu=np.empty((2, _NV, 3), dtype=FLOAT),
+        vertex_labels=np.empty((2, _NV, 2), dtype=np.int64),
+        edge_labels=np.empty((2, _NV), dtype=np.int64),
+        dmu_dlam=np.empty((_NV, 3, 6), dtype=FLOAT),
+        dphi_dmu=np.empty((_NV, 3), dtype=FLOAT),
+        dphi_dlam=np.empty(12, dtype=FLOAT),
+        d2phi_dlam2=np.empty((12, 12), dtype=FLOAT),
+        live_columns=np.empty((_NV, 6), dtype=np.int64),
+        phi_blocks=np.empty((4, _NV, 3, 3), dtype=FLOAT),
+        tri_block=np.empty((9, 9), dtype=FLOAT),
+        tri_tet_block=np.empty((9, 12), dtype=FLOAT),
+        lam_tri_block=np.empty((12, 9), dtype=FLOAT),
+        dphi_dx=np.empty(21, dtype=FLOAT),
+        darea_dx=np.empty(9, dtype=FLOAT),
+        d2area_dx2=np.empty((9, 9), dtype=FLOAT),
+        dphi_dcorner=np.empty((3, 3), dtype=FLOAT),
+        dnormal_dx=np.empty((9, 3), dtype=FLOAT),
+        num_live_columns=np.empty(_NV, dtype=np.int64),
+        scratch=np.empty((3, 9), dtype=FLOAT),
+        dshift_dx=np.empty((3, 9), dtype=FLOAT),
+        triangle_cache=np.full(3, -1, dtype=np.int64),
     )
 
 
@@ -97,7 +130,7 @@ def area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hes
             constant, it adds nothing to ``d G / d Lam``.
         penalty: eps (pressure / length).
         want_grad, want_hess: which derivatives to write.
-        work: tuple from `area_work`.
+        work: `AreaWork` from `area_work`.
         grad: (np, 21) output, row p written if want_grad; hess: (np, 21, 21) output, block p
             written if want_hess (rows of the outputs are indexed here, not sliced: a view per
             pair costs reference counting).
@@ -107,31 +140,30 @@ def area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hes
         The pair energy (>= 0), or -1.0 (with zero outputs) when the pair does not contribute:
         empty intersection, flat tetrahedron or zero-area triangle.
     """
-    (
-        grads,
-        lam,
-        mu,
-        vlab,
-        elab,
-        jmu,
-        wmu,
-        gphi,
-        hphi,
-        jidx,
-        blk,
-        tt,
-        vv,
-        uu,
-        gx,
-        ga,
-        ha,
-        ww,
-        dn,
-        ncol,
-        zv,
-        ds,
-        tri_state,
-    ) = work
+    # the work arrays under the short names of the formulas below
+    grads = work.grads
+    lam = work.lam
+    mu = work.mu
+    vlab = work.vertex_labels
+    elab = work.edge_labels
+    jmu = work.dmu_dlam
+    wmu = work.dphi_dmu
+    gphi = work.dphi_dlam
+    hphi = work.d2phi_dlam2
+    jidx = work.live_columns
+    blk = work.phi_blocks
+    tt = work.tri_block
+    vv = work.tri_tet_block
+    uu = work.lam_tri_block
+    gx = work.dphi_dx
+    ga = work.darea_dx
+    ha = work.d2area_dx2
+    ww = work.dphi_dcorner
+    dn = work.dnormal_dx
+    ncol = work.num_live_columns
+    zv = work.scratch
+    ds = work.dshift_dx
+    tri_state = work.triangle_cache
     # a contributing pair writes every entry of its outputs; the others are zeroed here
     a2 = triangle_area2(xs)
     if a2 == 0.0:
@@ -293,7 +325,8 @@ def area_pair(xs, xt, dt, offset, penalty, want_grad, want_hess, work, grad, hes
     inv_n = 1.0 / a2
     # What depends on the triangle alone (dn, d A / d x, the clip shift's Jacobian, d2 A) is
     # computed once for the pairs of one triangle that come one after the other, eight on
-    # average at a flat interface; the caller names the pair's triangle in tri_state[0].
+    # average at a flat interface; the caller names the pair's triangle in tri_state[0]
+    # (``work.triangle_cache``).
     fresh = tri_state[0] < 0 or tri_state[1] != tri_state[0]
     if fresh:
         for i in range(3):

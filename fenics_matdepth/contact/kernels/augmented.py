@@ -115,7 +115,7 @@ def area_pairs_augmented(
                 has_pressure = has_pressure or pressure[v] != 0.0
             for r in range(3):
                 xs[a, r] = x[v, r]
-        work[22][0] = pair_tri[p]
+        work.triangle_cache[0] = pair_tri[p]
         k = pair_tet[p]
         split = is_split(tet, k)
         zero_folded(21, want_grad, want_hess, acc_g, acc_h)
@@ -166,7 +166,7 @@ def area_pairs_pressure_moments(x, depth, tri, tet, pair_tri, pair_tet):
     gmom = np.zeros((npairs, 3), dtype=FLOAT)
     amom = np.zeros((npairs, 3), dtype=FLOAT)
     work = polygon_work()
-    xs, mu, gi = work[0], work[5], work[8]
+    xs, mu, gi = work.xs, work.mu, work.corner_depth
     for p in range(npairs):
         a2 = gather_triangle(x, tri, pair_tri[p], xs)
         if a2 == 0.0:

@@ -65,7 +65,7 @@ def _area_pairs_core(
         for a in range(3):
             for r in range(3):
                 xs[a, r] = x[tri[pair_tri[p], a], r]
-        work[22][0] = pair_tri[p]
+        work.triangle_cache[0] = pair_tri[p]
         k = pair_tet[p]
         split = is_split(tet, k)
         row = m if compact else p

@@ -3,6 +3,8 @@ against a (sub-)tetrahedron, and the largest material depth reached on it over m
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -18,6 +20,7 @@ from fenics_matdepth.geometry.clip import (
 )
 
 __all__ = [
+    "PolygonWork",
     "area_pairs_max_depth",
     "gather_triangle",
     "polygon_work",
@@ -27,20 +30,33 @@ __all__ = [
 _NV = MAX_POLYGON_VERTICES
 
 
+class PolygonWork(NamedTuple):
+    """Buffers of `sub_polygon` (`polygon_work`), by name."""
+
+    xs: np.ndarray  #: (3, 3) the triangle's corners
+    xt: np.ndarray  #: (4, 3) the (sub-)tetrahedron's vertices
+    dt: np.ndarray  #: (4,) their material depths
+    grads: np.ndarray  #: (4, 3) barycentric gradients of the (sub-)tetrahedron
+    lam: np.ndarray  #: (3, 4) barycentric coordinates of the triangle's corners in it
+    mu: np.ndarray  #: (2, nv, 3) the clipped polygon, as `clip_triangle` fills it
+    vertex_labels: np.ndarray  #: (2, nv, 2) its vertex labels
+    edge_labels: np.ndarray  #: (2, nv) its edge labels
+    corner_depth: np.ndarray  #: (3,) the depth g_K at the triangle's corners, extended affinely
+
+
 @njit(cache=True, fastmath=FMA)
 def polygon_work():
-    """Buffers of `sub_polygon`: xs (3, 3), xt (4, 3), dt (4,), grads (4, 3), lam (3, 4),
-    mu, vlab, elab (the clipped polygon, as `clip_triangle` fills them) and gi (3,)."""
-    return (
-        np.empty((3, 3), dtype=FLOAT),
-        np.empty((4, 3), dtype=FLOAT),
-        np.empty(4, dtype=FLOAT),
-        np.empty((4, 3), dtype=FLOAT),
-        np.empty((3, 4), dtype=FLOAT),
-        np.empty((2, _NV, 3), dtype=FLOAT),
-        np.empty((2, _NV, 2), dtype=INDEX),
-        np.empty((2, _NV), dtype=INDEX),
-        np.empty(3, dtype=FLOAT),
+    """The buffers of `sub_polygon`."""
+    return PolygonWork(
+        xs=np.empty((3, 3), dtype=FLOAT),
+        xt=np.empty((4, 3), dtype=FLOAT),
+        dt=np.empty(4, dtype=FLOAT),
+        grads=np.empty((4, 3), dtype=FLOAT),
+        lam=np.empty((3, 4), dtype=FLOAT),
+        mu=np.empty((2, _NV, 3), dtype=FLOAT),
+        vertex_labels=np.empty((2, _NV, 2), dtype=INDEX),
+        edge_labels=np.empty((2, _NV), dtype=INDEX),
+        corner_depth=np.empty(3, dtype=FLOAT),
     )
 
 
@@ -55,12 +71,20 @@ def gather_triangle(x, tri, t, xs):
 
 @njit(cache=True, fastmath=FMA)
 def sub_polygon(x, depth, tet, k, s, split, work):
-    """Clip the triangle in ``work[0]`` against tetrahedron k (sub-tetrahedron s when split):
-    the polygon in ``work[5]`` (parameter coordinates on the triangle, as `clip_triangle` gives
-    them) and, in ``work[8]``, the depth ``g_K`` at the triangle's corners, extended affinely
-    over the parameter simplex. Returns the polygon's vertex count (0 for a flat
+    """Clip the triangle in ``work.xs`` against tetrahedron k (sub-tetrahedron s when split):
+    the polygon in ``work.mu`` (parameter coordinates on the triangle, as `clip_triangle` gives
+    them) and, in ``work.corner_depth``, the depth ``g_K`` at the triangle's corners, extended
+    affinely over the parameter simplex. Returns the polygon's vertex count (0 for a flat
     tetrahedron)."""
-    xs, xt, dt, grads, lam, mu, vlab, elab, gi = work
+    xs = work.xs
+    xt = work.xt
+    dt = work.dt
+    grads = work.grads
+    lam = work.lam
+    mu = work.mu
+    vlab = work.vertex_labels
+    elab = work.edge_labels
+    gi = work.corner_depth
     gather_tet(x, depth, tet, k, s, split, xt, dt)
     if tet_gradients(xt, grads) == 0.0:
         return 0
@@ -86,7 +110,7 @@ def area_pairs_max_depth(x, depth, tri, tet, pair_tri, pair_tet):
     """
     out = np.zeros(pair_tri.shape[0], dtype=FLOAT)
     work = polygon_work()
-    xs, mu, gi = work[0], work[5], work[8]
+    xs, mu, gi = work.xs, work.mu, work.corner_depth
     for p in range(pair_tri.shape[0]):
         if gather_triangle(x, tri, pair_tri[p], xs) == 0.0:
             continue
