@@ -13,8 +13,9 @@ import time
 
 import numpy as np
 
-from fenics_matdepth.contact.kernels import _area_pairs, _area_pairs_into, _collocation_pairs
-from fenics_matdepth.geometry.clip import _intersect_pairs
+from fenics_matdepth.contact.kernels.collocation import collocation_pairs
+from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_into
+from fenics_matdepth.geometry.intersect import intersect_pairs
 
 TARGETS = {
     "intersection": 20e6,
@@ -84,18 +85,18 @@ def main() -> None:
     npairs = args.pairs
     x, depth, tri, tet, pairs = candidate_pairs(npairs)
     flags = np.empty(npairs, dtype=bool)
-    hit = _intersect_pairs(x, tri, tet, pairs, pairs, flags)
+    hit = intersect_pairs(x, tri, tet, pairs, pairs, flags)
     print(f"pairs: {npairs}, intersecting: {hit} ({100.0 * hit / npairs:.1f} %)")
     gx, gtri, gtet, gpair_tri, gpair_tet = grouped_pairs(npairs)
     gflags = np.empty(len(gpair_tri), dtype=bool)
-    ghit = _intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags)
+    ghit = intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags)
     print(
         f"grouped: {len(gpair_tri)} pairs of {len(gtri)} triangles, intersecting: {ghit} "
         f"({100.0 * ghit / len(gpair_tri):.1f} %)"
     )
     print("one core: the drivers loop serially (no prange)")
 
-    # Newton-loop use: outputs preallocated once and reused (_area_pairs_into writes the
+    # Newton-loop use: outputs preallocated once and reused (area_pairs_into writes the
     # contributing pairs compactly); the Hessian output is 3.5 kB per pair, so that figure is
     # taken on a slice to keep memory modest
     nh = min(npairs, 50_000)
@@ -106,23 +107,23 @@ def main() -> None:
     no_hess = np.empty((0, 21, 21))
     rates = {
         "intersection": best_rate(
-            lambda: _intersect_pairs(x, tri, tet, pairs, pairs, flags), npairs, args.repeat
+            lambda: intersect_pairs(x, tri, tet, pairs, pairs, flags), npairs, args.repeat
         ),
         # the same test on candidates grouped by triangle (per-triangle work done once a group)
         "intersection, grouped": best_rate(
-            lambda: _intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags),
+            lambda: intersect_pairs(gx, gtri, gtet, gpair_tri, gpair_tet, gflags),
             len(gpair_tri),
             args.repeat,
         ),
         "energy+gradient": best_rate(
-            lambda: _area_pairs_into(
+            lambda: area_pairs_into(
                 x, depth, tri, tet, pairs, pairs, 1.0, True, False, active, energy, grad, no_hess
             ),
             npairs,
             args.repeat,
         ),
         "energy+gradient+hessian": best_rate(
-            lambda: _area_pairs_into(
+            lambda: area_pairs_into(
                 x,
                 depth,
                 tri,
@@ -142,7 +143,7 @@ def main() -> None:
         ),
     }
     energy_only = best_rate(
-        lambda: _area_pairs_into(
+        lambda: area_pairs_into(
             x, depth, tri, tet, pairs, pairs, 1.0, False, False, active, energy, grad, no_hess
         ),
         npairs,
@@ -150,7 +151,7 @@ def main() -> None:
     )
     # the allocating driver (fresh zeroed (np, 21, 21) output each call: page faults included)
     alloc_h = best_rate(
-        lambda: _area_pairs(x, depth, tri, tet, pairs[:nh], pairs[:nh], 1.0, True, True),
+        lambda: area_pairs(x, depth, tri, tet, pairs[:nh], pairs[:nh], 1.0, True, True),
         nh,
         args.repeat,
     )
@@ -166,12 +167,12 @@ def main() -> None:
     ktet = np.repeat(pairs, 3)
     weight = np.full(len(x), 0.1)
     col_g = best_rate(
-        lambda: _collocation_pairs(x, depth, weight, tet, node, ktet, 1.0, True, False),
+        lambda: collocation_pairs(x, depth, weight, tet, node, ktet, 1.0, True, False),
         len(node),
         args.repeat,
     )
     col_h = best_rate(
-        lambda: _collocation_pairs(x, depth, weight, tet, node[:nh], ktet[:nh], 1.0, True, True),
+        lambda: collocation_pairs(x, depth, weight, tet, node[:nh], ktet[:nh], 1.0, True, True),
         nh,
         args.repeat,
     )

@@ -16,7 +16,8 @@ from mpi4py import MPI
 import numpy as np
 
 from fenics_matdepth.depth import distance_to_triangles
-from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.boxes import element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.bvh import AABBTree
 
 #: Targets (seconds) from issue #3.
 TARGET_DEPTH_1M_VERTICES = 5.0

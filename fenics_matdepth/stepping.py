@@ -27,9 +27,9 @@ import numpy as np
 import ufl
 
 from fenics_matdepth._mpi import collective_error
-from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
+from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
 
 if typing.TYPE_CHECKING:

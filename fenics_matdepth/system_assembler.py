@@ -19,9 +19,9 @@ import dolfinx.fem.petsc
 import numpy as np
 
 from fenics_matdepth._bulk import BulkMatrix
-from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth.contact import assembly
 from fenics_matdepth.contact.operator import ContactOperator
+from fenics_matdepth.kinematics import CellDeterminants
 
 __all__ = ["TIMING_KEYS", "SystemAssembler"]
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.boxes import element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.bvh import AABBTree
 from fenics_matdepth.geometry.distance import (
     nearest_triangle_bruteforce,
     point_triangle_distance,

@@ -14,22 +14,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fenics_matdepth.geometry.clip import (
-    _BLOCK,
     CLIP_SHIFT,
     CLIP_TOL,
     MAX_POLYGON_VERTICES,
     SHIFT_TANGENT,
-    _clip_nonempty,
-    _decide_block,
-    _intersect_pairs,
-    _near_pairs,
     _snap,
-    _tet_gradients,
-    _triangle_area2,
-    _triangle_rows,
+    clip_nonempty,
     clip_shift,
     intersection_polygon,
+    tet_gradients,
+    triangle_area2,
+    triangle_rows,
 )
+from fenics_matdepth.geometry.intersect import _BLOCK, _decide_block, intersect_pairs, near_pairs
 
 # Float clipping works on barycentrics computed in floating point (error ~ 1e-16 times the
 # tetrahedron's condition number, at most ~1e3 for the configurations drawn here; values within
@@ -282,7 +279,7 @@ def test_degenerate_inputs_finite():
 
 
 def test_batch_intersection_test_matches_polygon():
-    """`_intersect_pairs` flags exactly the pairs with a non-empty polygon."""
+    """`intersect_pairs` flags exactly the pairs with a non-empty polygon."""
     rng = np.random.default_rng(11)
     nv = 60
     x = rng.normal(size=(nv, 3))
@@ -291,7 +288,7 @@ def test_batch_intersection_test_matches_polygon():
     pair_tri = rng.integers(0, 40, size=500)
     pair_tet = rng.integers(0, 40, size=500)
     flags = np.empty(500, dtype=bool)
-    count = _intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
+    count = intersect_pairs(x, tri, tet, pair_tri, pair_tet, flags)
     expected = np.array(
         [
             len(intersection_polygon(x[tri[a]], x[tet[b]])) >= 3
@@ -304,7 +301,7 @@ def test_batch_intersection_test_matches_polygon():
 
 def _clip_keeps_polygon(lam) -> bool:
     """Sutherland-Hodgman of the parameter simplex on the four barycentric values of each
-    vertex, all of them carried along: the plain form of the test `_intersect_pairs` makes
+    vertex, all of them carried along: the plain form of the test `intersect_pairs` makes
     (Python floats, the same operations in the same order)."""
     poly = [list(row) for row in lam]
     for j in range(4):
@@ -333,7 +330,7 @@ def test_clip_nonempty_on_exact_zeros():
         lam = rng.integers(-2, 3, size=(3, 4)).astype(float)
         lam[:, 0] = rng.integers(-1, 2, size=3)
         expected = _clip_keeps_polygon(lam.tolist())
-        assert _clip_nonempty(lam, buf) == expected
+        assert clip_nonempty(lam, buf) == expected
         decided[expected] += 1
     assert min(decided) > 2000
 
@@ -347,9 +344,9 @@ def _reference_flags(x, tri, tet, pair_tri, pair_tet):
     for p, (a, b) in enumerate(zip(pair_tri, pair_tet, strict=True)):
         xs = np.ascontiguousarray(x[tri[a]])
         xt = np.ascontiguousarray(x[tet[b]])
-        if _tet_gradients(xt, grads) == 0.0 or _triangle_area2(xs) == 0.0:
+        if tet_gradients(xt, grads) == 0.0 or triangle_area2(xs) == 0.0:
             continue
-        _triangle_rows(xs, xt, grads, lam)
+        triangle_rows(xs, xt, grads, lam)
         _snap(lam)
         if np.any(np.all(lam < 0.0, axis=0)):
             continue
@@ -376,7 +373,7 @@ def _degenerate_mesh(seed):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_batch_intersection_test_degenerate_pairs(seed):
-    """`_intersect_pairs` decides degenerate pairs exactly as the clipper's parts do (the
+    """`intersect_pairs` decides degenerate pairs exactly as the clipper's parts do (the
     shift, the snapping, the flat and zero-area cases), with candidates in random order and
     grouped by triangle (the per-triangle values it reuses along a group)."""
     x, tri, tet, x_rot = _degenerate_mesh(seed)
@@ -388,7 +385,7 @@ def test_batch_intersection_test_degenerate_pairs(seed):
         assert 300 < expected.sum() < 2700
         for order in (np.arange(3000), np.argsort(pair_tri, kind="stable")):
             flags = np.empty(3000, dtype=bool)
-            count = _intersect_pairs(coords, tri, tet, pair_tri[order], pair_tet[order], flags)
+            count = intersect_pairs(coords, tri, tet, pair_tri[order], pair_tet[order], flags)
             np.testing.assert_array_equal(flags, expected[order])
             assert count == expected.sum()
 
@@ -408,7 +405,7 @@ def _mixed_pairs(n, seed):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_decide_block_rows_and_decisions(seed):
-    """`_decide_block` (the vectorised part of `_intersect_pairs`) writes the clipper's snapped
+    """`_decide_block` (the vectorised part of `intersect_pairs`) writes the clipper's snapped
     rows bit for bit and settles exactly the pairs the clipper's parts settle: empty for a flat
     tetrahedron, a zero-area triangle or a face plane with every corner strictly outside, a
     corner strictly inside, the clip for the rest; on degenerate grid pairs (exact zeros, ties,
@@ -436,10 +433,10 @@ def test_decide_block_rows_and_decisions(seed):
             for k in range(m):
                 xs = np.ascontiguousarray(coords[tri[pair_tri[k]]])
                 xt = np.ascontiguousarray(coords[tet[pair_tet[k]]])
-                if _tet_gradients(xt, grads) == 0.0 or _triangle_area2(xs) == 0.0:
+                if tet_gradients(xt, grads) == 0.0 or triangle_area2(xs) == 0.0:
                     expected = 0
                 else:
-                    _triangle_rows(xs, xt, grads, lam)
+                    triangle_rows(xs, xt, grads, lam)
                     _snap(lam)
                     np.testing.assert_array_equal(block[21:33, k].reshape(3, 4), lam)
                     if np.any(np.all(lam < 0.0, axis=0)):
@@ -460,7 +457,7 @@ def test_batch_intersection_test_block_sizes(n):
     x, tri, tet = _mixed_pairs(max(n, 1), 5)
     pairs = np.arange(n)
     flags = np.ones(n, dtype=bool)
-    count = _intersect_pairs(x, tri, tet, pairs, pairs, flags)
+    count = intersect_pairs(x, tri, tet, pairs, pairs, flags)
     expected = _reference_flags(x, tri, tet, pairs, pairs)
     np.testing.assert_array_equal(flags, expected)
     assert count == expected.sum()
@@ -487,7 +484,7 @@ def _sampled_distance(x_tri, x_tet, n=24) -> float:
 
 def _one_pair_near(x_tri, x_tet, gap) -> bool:
     x = np.vstack((x_tri, x_tet)).astype(float)
-    kept, _ = _near_pairs(
+    kept, _ = near_pairs(
         x, np.array([[0, 1, 2]]), np.array([[3, 4, 5, 6]]), np.zeros(1, np.int64),
         np.zeros(1, np.int64), gap,
     )  # fmt: skip
@@ -528,11 +525,11 @@ def test_near_pairs_never_drop_a_pair_within_gap(tri, tet):
 _FAST_CALLER = """
 import numpy as np
 from numba import njit
-from fenics_matdepth.geometry import clip
+from fenics_matdepth.geometry import clip, intersect
 
 @njit(fastmath={"contract"})
 def caller(x, tri, tet, pair_tri, pair_tet, out, a, b, c):
-    return clip._intersect_pairs(x, tri, tet, pair_tri, pair_tet, out), a * b + c
+    return intersect.intersect_pairs(x, tri, tet, pair_tri, pair_tet, out), a * b + c
 
 x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 x[:3, 2] = 0.25
@@ -544,7 +541,9 @@ def ir(d):
     return " ".join(c.library.get_llvm_str() for c in d.overloads.values())
 
 assert " contract " in ir(caller)
-kernels = [getattr(clip, n) for n in dir(clip) if hasattr(getattr(clip, n), "overloads")]
+kernels = [getattr(m, n) for m in (clip, intersect) for n in dir(m)
+           if hasattr(getattr(m, n), "overloads")]
+assert any(k.overloads for k in kernels if k.py_func.__module__ == clip.__name__)
 print(sorted(k.__name__ for k in kernels if k.overloads and " contract " in ir(k)))
 """
 

@@ -10,16 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_augmented,
-    _area_pairs_into,
-    _clip_shift_jacobian,
-    _collocation_pairs,
-    _intersecting,
-    collocation_energy,
-    pair_energy,
-)
+from fenics_matdepth.contact.kernels import collocation_energy, pair_energy
+from fenics_matdepth.contact.kernels.area_derivatives import clip_shift_jacobian
+from fenics_matdepth.contact.kernels.augmented import area_pairs_augmented
+from fenics_matdepth.contact.kernels.collocation import collocation_pairs
+from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_into, intersecting
 from fenics_matdepth.geometry.clip import MAX_POLYGON_VERTICES, _intersection_polygon, clip_shift
 
 EPS = 3.0  # penalty (pressure / length)
@@ -256,7 +251,7 @@ def test_clip_shift_jacobian_against_differences(scale):
     for x_tri in [*triangles, sliver, needle, far]:
         x_tri = scale * x_tri
         ds = np.empty((3, 9))
-        _clip_shift_jacobian(x_tri, ds)
+        clip_shift_jacobian(x_tri, ds)
         h = 1e-5 * scale
         fd = np.empty((3, 9))
         for col in range(9):
@@ -374,14 +369,14 @@ def _path_forces(kind, steps=10_000, length=3.2):
         force = np.zeros((nv, 3))
         hess = np.zeros((3 * nv, 3 * nv))
         if kind == "area":
-            _, g, h = _area_pairs(
+            _, g, h = area_pairs(
                 x, depth, tri, tet, np.zeros(2, np.int64), np.arange(2), EPS, True, True
             )
             dofs = [np.concatenate([tri[0], tet[p]]) for p in range(2)]
         else:
             nodes = np.repeat(np.arange(3), 2)
             kk = np.tile(np.arange(2), 3)
-            _, g, h = _collocation_pairs(x, depth, weight, tet, nodes, kk, EPS, True, True)
+            _, g, h = collocation_pairs(x, depth, weight, tet, nodes, kk, EPS, True, True)
             dofs = [np.concatenate([[nodes[p]], tet[kk[p]]]) for p in range(len(nodes))]
         for p, vert in enumerate(dofs):
             idx = (3 * vert[:, None] + np.arange(3)).ravel()
@@ -467,7 +462,7 @@ def test_batch_drivers_match_single_pairs():
     tet = np.array([rng.choice(nv, 4, replace=False) for _ in range(15)])
     pair_tri = rng.integers(0, 15, size=200)
     pair_tet = rng.integers(0, 15, size=200)
-    energy, grad, hess = _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
+    energy, grad, hess = area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
     for p in range(200):
         e1, g1, h1 = pair_energy(
             x[tri[pair_tri[p]]], x[tet[pair_tet[p]]], depth[tet[pair_tet[p]]], EPS
@@ -476,13 +471,13 @@ def test_batch_drivers_match_single_pairs():
         np.testing.assert_array_equal(grad[p], g1)
         np.testing.assert_array_equal(hess[p], h1)
     assert np.count_nonzero(energy) > 20
-    e_only, g_none, h_none = _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, False, False)
+    e_only, g_none, h_none = area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, False, False)
     np.testing.assert_array_equal(e_only, energy)
     assert g_none.shape == (0, 21) and h_none.shape == (0, 21, 21)
     # the intersection test the operator runs first, then the pair kernel on those pairs
-    active = _intersecting(x, tri, tet, pair_tri, pair_tet)
+    active = intersecting(x, tri, tet, pair_tri, pair_tet)
     np.testing.assert_array_equal(active, np.flatnonzero(energy != 0.0))
-    e_act, g_act, h_act = _area_pairs(
+    e_act, g_act, h_act = area_pairs(
         x, depth, tri, tet, pair_tri[active], pair_tet[active], EPS, True, True
     )
     np.testing.assert_array_equal(e_act, energy[active])
@@ -492,19 +487,19 @@ def test_batch_drivers_match_single_pairs():
     # preallocated compact output; too small a capacity reports the count needed
     cap = len(active) + 3
     out = (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, 21)), np.empty((cap, 21, 21)))
-    m = _area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *out)
+    m = area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *out)
     assert m == len(active)
     np.testing.assert_array_equal(out[0][:m], active)
     np.testing.assert_array_equal(out[1][:m], e_act)
     np.testing.assert_array_equal(out[2][:m], g_act)
     np.testing.assert_array_equal(out[3][:m], h_act)
     small = (np.empty(5, np.int64), np.empty(5), np.empty((5, 21)), np.empty((5, 21, 21)))
-    assert _area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *small) == m
+    assert area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *small) == m
     np.testing.assert_array_equal(small[3], h_act[:5])
 
     weight = rng.uniform(size=nv)
     pair_node = rng.integers(0, nv, size=200)
-    e_c, g_c, h_c = _collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, EPS, True, True)
+    e_c, g_c, h_c = collocation_pairs(x, depth, weight, tet, pair_node, pair_tet, EPS, True, True)
     for p in range(200):
         k = tet[pair_tet[p]]
         e1, g1, h1 = collocation_energy(x[pair_node[p]], x[k], depth[k], weight[pair_node[p]], EPS)
@@ -532,8 +527,8 @@ def test_pairs_of_one_triangle_reuse_its_quantities_exactly():
     assert np.all(np.diff(pair_tri[mixed]) != 0)
     pressure = rng.uniform(size=nv)
     for run in (
-        lambda pt, pk: _area_pairs(x, depth, tri, tet, pt, pk, EPS, True, True),
-        lambda pt, pk: _area_pairs_augmented(
+        lambda pt, pk: area_pairs(x, depth, tri, tet, pt, pk, EPS, True, True),
+        lambda pt, pk: area_pairs_augmented(
             x, depth, tri, tet, pt, pk, EPS, pressure, 0.0, True, True
         ),
     ):
@@ -542,7 +537,7 @@ def test_pairs_of_one_triangle_reuse_its_quantities_exactly():
         for a, b in zip(grouped, alone, strict=True):
             np.testing.assert_array_equal(a[mixed], b)
         assert np.count_nonzero(grouped[0]) > 3 * ntri  # several contributing pairs a triangle
-    energy, grad, hess = _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
+    energy, grad, hess = area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
     for p in np.flatnonzero(energy)[::5]:
         k = tet[pair_tet[p]]
         e1, g1, h1 = pair_energy(x[tri[pair_tri[p]]], x[k], depth[k], EPS)

@@ -259,7 +259,8 @@ def test_summed_passes_match_per_pair_arrays():
     the kernel makes them (`_summed`) give the energies, the summed gradient and the pattern's
     3 x 3 blocks of the per-pair arrays (`_evaluate`) summed afterwards, Dirichlet rows and
     columns left out; over many chunks, with split tetrahedra among the pairs."""
-    from fenics_matdepth.contact.kernels import _SUM_CHUNK, _accumulate_vertex_blocks
+    from fenics_matdepth.contact.assembly import _accumulate_vertex_blocks
+    from fenics_matdepth.contact.kernels.drivers import _SUM_CHUNK
 
     comm = MPI.COMM_WORLD
     mesh, V, _, op = _setup(comm, "area")
@@ -306,7 +307,7 @@ def test_coupling_positions_of_grouped_pairs_in_an_asymmetric_pattern():
     the same triangle) equal a search of the whole pattern for every coupling, and the count
     of those missing is theirs; on a pattern lacking some couplings, some of them without
     their transpose, and a triangle that comes back after another."""
-    from fenics_matdepth.contact.kernels import _coupling_positions, _key_rows, _transposed_keys
+    from fenics_matdepth.contact.assembly import _coupling_positions, _key_rows, _transposed_keys
 
     rng = np.random.default_rng(5)
     nv = 30
@@ -338,8 +339,8 @@ def test_candidate_pairs_serve_later_updates_within_the_skin():
     1.2 skins, those whose boxes overlap now are the pairs of a fresh search without skin, and
     the intersecting pairs are that search's, while fewer searches were made than updates."""
     from fenics_matdepth.contact import pairs
-    from fenics_matdepth.contact.kernels import _intersecting
-    from fenics_matdepth.geometry.bvh import overlapping_pairs
+    from fenics_matdepth.contact.kernels.drivers import intersecting
+    from fenics_matdepth.geometry.boxes import overlapping_pairs
 
     comm = MPI.COMM_WORLD
     _, V, u, op = _setup(comm, "area")
@@ -367,7 +368,7 @@ def test_candidate_pairs_serve_later_updates_within_the_skin():
         near = overlapping_pairs(s.x, s.tri, s.tets, pa, pk)
         kept = zip(pa[near].tolist(), pk[near].tolist(), strict=True)
         assert set(kept) == set(zip(fa.tolist(), fk.tolist(), strict=True))
-        hit = _intersecting(s.x, s.tri, s.kernel_tets, fa, fk)
+        hit = intersecting(s.x, s.tri, s.kernel_tets, fa, fk)
         active = op._intersecting_pairs()
         got = set(zip(pa[active].tolist(), pk[active].tolist(), strict=True))
         assert got == set(zip(fa[hit].tolist(), fk[hit].tolist(), strict=True))

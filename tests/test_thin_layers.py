@@ -27,13 +27,9 @@ from test_self_contact import LENGTH, THICKNESS, WIDTH, _end_motion
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_into,
-    _area_pairs_max_depth,
-    collocation_energy,
-    pair_energy,
-)
+from fenics_matdepth.contact.kernels import collocation_energy, pair_energy
+from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_into
+from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth
 from fenics_matdepth.contact.operator import ContactOperator, DepthDeficiencyWarning
 from fenics_matdepth.depth import count_depth_deficient, depth_deficient_tets
 
@@ -127,8 +123,8 @@ def test_split_pair_derivatives_match_finite_differences(which):
 
 
 def test_batch_drivers_with_split_tetrahedra():
-    """Mixed batches (split and plain tetrahedra): the compact driver `_area_pairs_into`
-    (also when its arrays are too short) and `_area_pairs_max_depth` agree with the
+    """Mixed batches (split and plain tetrahedra): the compact driver `area_pairs_into`
+    (also when its arrays are too short) and `area_pairs_max_depth` agree with the
     one-pair results and with the sub-tetrahedra evaluated as plain tetrahedra."""
     rng = np.random.default_rng(5)
     n = 12
@@ -146,13 +142,13 @@ def test_batch_drivers_with_split_tetrahedra():
                     CENTROID_DEPTH if pair_tet[p] else None)[0]
         for p in range(n)
     ])  # fmt: skip
-    energy, grad, hess = _area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
+    energy, grad, hess = area_pairs(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True)
     assert np.allclose(energy, e_ref, rtol=1e-13, atol=0.0)
     assert np.count_nonzero(energy[pair_tet == 1] > 0) >= 2
     m_full = None
     for cap in (n, 2):
         out = (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, 21)), np.empty((cap, 21, 21)))
-        m = _area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *out)
+        m = area_pairs_into(x, depth, tri, tet, pair_tri, pair_tet, EPS, True, True, *out)
         m_full = m if m_full is None else m_full
         assert m == m_full
         rows = out[0][: min(m, cap)]
@@ -168,10 +164,10 @@ def test_batch_drivers_with_split_tetrahedra():
         sub_depth[nt + 4 * s : nt + 4 * s + 4] = depth[nt : nt + 4]
         sub_depth[nt + 4 * s + s] = CENTROID_DEPTH
     split_pairs = pair_tri[pair_tet == 1]
-    g = _area_pairs_max_depth(x, depth, tri, tet, split_pairs, np.ones_like(split_pairs))
+    g = area_pairs_max_depth(x, depth, tri, tet, split_pairs, np.ones_like(split_pairs))
     g_sub = np.max(
         [
-            _area_pairs_max_depth(
+            area_pairs_max_depth(
                 xs, sub_depth, tri, sub_tet, split_pairs, np.full_like(split_pairs, s)
             )
             for s in range(4)

@@ -3,7 +3,9 @@
 The pair kernels give energies, gradients and Hessians over the pairs' held vertices (see
 :mod:`fenics_matdepth.contact.surface`); here they are summed per dof, mapped to the global
 dof numbering (``3 v + c`` for component c of global vertex v) and added with PETSc's
-off-process assembly, which sends contributions to dofs owned by other ranks.
+off-process assembly, which sends contributions to dofs owned by other ranks. The numba
+kernels of the fixed sparsity pattern (row pointers and binary search over its sorted
+vertex-coupling keys, Hessian blocks summed into it, the CSR handed to PETSc) are here too.
 """
 
 from __future__ import annotations
@@ -13,16 +15,11 @@ from petsc4py import PETSc
 
 import dolfinx
 import numpy as np
+from numba import njit
 
 from fenics_matdepth._bulk import csr_entries
 from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth.contact.kernels import (
-    _accumulate_vertex_blocks,
-    _blocks_to_csr,
-    _coupling_positions,
-    _key_rows,
-    _transposed_keys,
-)
+from fenics_matdepth.contact.kernels.fastmath import FMA
 from fenics_matdepth.contact.surface import ContactSurface
 
 __all__ = [
@@ -44,6 +41,229 @@ __all__ = [
 
 #: PETSc's index type, for numba to write indices in
 _PETSC_INT = np.empty(0, dtype=PETSc.IntType)
+
+
+# ------------------------------------------------------------------------------------------
+# Assembly into a fixed sparsity pattern (no sorting of pair entries per iterate)
+# ------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, fastmath=FMA)
+def _add_vertex_block(blocks, key, hess, row, a, b, va, vb, bc_mask):
+    """``blocks[key] +=`` the 3 x 3 block (a, b) of pair Hessian ``hess[row]`` (vertices
+    ``va``, ``vb``), Dirichlet rows and columns left out."""
+    for r in range(3):
+        if bc_mask[3 * va + r]:
+            continue
+        for c in range(3):
+            if not bc_mask[3 * vb + c]:
+                blocks[key, r, c] += hess[row, 3 * a + r, 3 * b + c]
+
+
+@njit(cache=True, fastmath=FMA)
+def _key_rows(keys, num_vertices):
+    """Row pointers of a sorted vertex-coupling pattern: the keys ``va * num_vertices + vb`` of
+    vertex ``va`` are ``keys[rows[va]:rows[va + 1]]``.
+
+    Args:
+        keys: (nk,) sorted keys.
+        num_vertices: number of vertices of the key numbering.
+
+    Returns:
+        (num_vertices + 1,) row pointers.
+    """
+    rows = np.zeros(num_vertices + 1, dtype=np.int64)
+    for k in range(keys.shape[0]):
+        rows[keys[k] // num_vertices + 1] += 1
+    for v in range(num_vertices):
+        rows[v + 1] += rows[v]
+    return rows
+
+
+@njit(cache=True, fastmath=FMA)
+def _find_key(keys, lo, hi, key):
+    """Index of ``key`` in the sorted ``keys[lo:hi]`` (binary search), or -1."""
+    end = hi
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < end and keys[lo] == key:
+        return lo
+    return -1
+
+
+@njit(cache=True, fastmath=FMA)
+def _transposed_keys(keys, rows, num_vertices):
+    """Where each coupling's transpose lies in a fixed pattern.
+
+    Args:
+        keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        rows: (num_vertices + 1,) their row pointers (`_key_rows`).
+        num_vertices: number of vertices of the key numbering.
+
+    Returns:
+        (nk,) the index in ``keys`` of ``(vb, va)`` for each key ``(va, vb)``, -1 where the
+        pattern lacks it (never, for a pattern made of whole pairs, which is symmetric).
+    """
+    out = np.empty(keys.shape[0], dtype=np.int64)
+    for k in range(keys.shape[0]):
+        va = keys[k] // num_vertices
+        vb = keys[k] - va * num_vertices
+        out[k] = _find_key(keys, rows[vb], rows[vb + 1], vb * num_vertices + va)
+    return out
+
+
+@njit(cache=True, fastmath=FMA)
+def _coupling_positions(keys, rows, num_vertices, verts, transposed, pos):
+    """Where each vertex coupling of the pairs lies in a fixed pattern.
+
+    A binary search within the row of the coupling's first vertex (a few dozen keys), not
+    over the whole pattern, for the couplings (a, b) with a <= b only: (b, a) is the
+    transpose's index (``transposed``). A pair whose contact element (the first
+    ``verts.shape[1] - 4`` vertices) is the previous pair's copies that element's couplings
+    (pairs come grouped by element, eight a triangle on a flat interface).
+
+    Args:
+        keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        rows: (num_vertices + 1,) their row pointers (`_key_rows`).
+        num_vertices: number of vertices of the key numbering.
+        verts: (np, m) vertices of each pair (m = 7 for area pairs, 5 for collocation).
+        transposed: (nk,) `_transposed_keys` of ``keys``.
+        pos: (np, m, m) output: ``pos[p, a, b]`` the index in ``keys`` of the coupling
+            ``(verts[p, a], verts[p, b])``, -1 where the pattern lacks it.
+
+    Returns:
+        The number of couplings not in the pattern.
+    """
+    nvp = verts.shape[1]
+    lead = nvp - 4
+    missing = 0
+    for p in range(verts.shape[0]):
+        same = p > 0
+        for a in range(lead):
+            if same and verts[p, a] != verts[p - 1, a]:
+                same = False
+        for a in range(nvp):
+            va = verts[p, a]
+            lo = rows[va]
+            hi = rows[va + 1]
+            for b in range(a, nvp):
+                vb = verts[p, b]
+                if same and b < lead:
+                    k = pos[p - 1, a, b]
+                    kt = pos[p - 1, b, a]
+                else:
+                    k = _find_key(keys, lo, hi, va * num_vertices + vb)
+                    if b == a:
+                        kt = k
+                    elif k >= 0:
+                        kt = transposed[k]
+                    else:
+                        kt = _find_key(keys, rows[vb], rows[vb + 1], vb * num_vertices + va)
+                pos[p, a, b] = k
+                pos[p, b, a] = kt
+                if k < 0:
+                    missing += 1
+                if kt < 0 and b != a:
+                    missing += 1
+    return missing
+
+
+@njit(cache=True, fastmath=FMA)
+def _accumulate_vertex_blocks(pos, verts, hess, bc_mask, blocks, touched):
+    """Sum the pairs' Hessians into 3 x 3 blocks of a fixed vertex-coupling pattern.
+
+    Args:
+        pos: (np, m, m) pattern index of each pair coupling, -1 if outside the pattern
+            (`_coupling_positions`; those entries are left out).
+        verts: (np, m) vertices of each pair (m = 7 for area pairs, 5 for collocation).
+        hess: (np, 3 m, 3 m) pair Hessians, xyz interleaved in the order of ``verts``.
+        bc_mask: (3 num_vertices,) True on Dirichlet dofs, whose rows and columns are skipped.
+        blocks: (nk, 3, 3) output, added to (zero it first).
+        touched: (nk,) bool output, set True on every key a pair reaches.
+    """
+    nvp = verts.shape[1]
+    for p in range(verts.shape[0]):
+        for a in range(nvp):
+            va = verts[p, a]
+            for b in range(nvp):
+                k = pos[p, a, b]
+                if k < 0:
+                    continue
+                vb = verts[p, b]
+                touched[k] = True
+                _add_vertex_block(blocks, k, hess, p, a, b, va, vb, bc_mask)
+
+
+@njit(cache=True, fastmath=FMA)
+def _blocks_to_csr(keys, num_vertices, blocks, touched, global_vertex, int_type):
+    """The touched 3 x 3 blocks as a CSR over global dof rows, for ``MatSetValuesIJV``.
+
+    Args:
+        keys: (nk,) sorted vertex-coupling keys ``va * num_vertices + vb`` of the pattern.
+        num_vertices: number of vertices of the key numbering.
+        blocks, touched: as filled by `_accumulate_vertex_blocks`.
+        global_vertex: (num_vertices,) the global vertex number of each vertex.
+        int_type: an array of the integer type of the outputs' indices (PETSc's).
+
+    Returns:
+        ``(rows, indptr, cols, vals)``: global dof rows (``3 global_vertex[va] + r``), row
+        pointers into ``cols``/``vals``, global dof columns (in key order within a row) and
+        values.
+    """
+    nk = keys.shape[0]
+    n_touched = 0
+    n_vrows = 0
+    last = -1
+    for k in range(nk):
+        if touched[k]:
+            n_touched += 1
+            va = keys[k] // num_vertices
+            if va != last:
+                n_vrows += 1
+                last = va
+    rows = np.empty(3 * n_vrows, dtype=int_type.dtype)
+    indptr = np.empty(3 * n_vrows + 1, dtype=int_type.dtype)
+    cols = np.empty(9 * n_touched, dtype=int_type.dtype)
+    vals = np.empty(9 * n_touched, dtype=FLOAT)
+    indptr[0] = 0
+    row = 0
+    start = 0
+    k = 0
+    while k < nk:
+        if not touched[k]:
+            k += 1
+            continue
+        va = keys[k] // num_vertices
+        # the touched keys of vertex row va: k .. end (exclusive), g of them
+        g = 0
+        end = k
+        while end < nk and keys[end] // num_vertices == va:
+            if touched[end]:
+                g += 1
+            end += 1
+        ga = 3 * global_vertex[va]
+        for r in range(3):
+            rows[row + r] = ga + r
+            indptr[row + r + 1] = start + 3 * g * (r + 1)
+        j = 0
+        for kk in range(k, end):
+            if not touched[kk]:
+                continue
+            gb = 3 * global_vertex[keys[kk] % num_vertices]
+            for r in range(3):
+                base = start + 3 * g * r + 3 * j
+                for c in range(3):
+                    cols[base + c] = gb + c
+                    vals[base + c] = blocks[kk, r, c]
+            j += 1
+        start += 9 * g
+        row += 3
+        k = end
+    return rows, indptr, cols, vals
 
 
 def global_dofs(surface: ContactSurface, held_dofs: np.ndarray) -> np.ndarray:

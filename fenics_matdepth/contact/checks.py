@@ -12,7 +12,8 @@ from mpi4py import MPI
 
 import numpy as np
 
-from fenics_matdepth.contact.kernels import _area_pairs_max_depth, _intersecting
+from fenics_matdepth.contact.kernels.drivers import intersecting
+from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth
 from fenics_matdepth.contact.surface import ContactSurface
 from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
 
@@ -69,9 +70,9 @@ def check_contact_state(surface: ContactSurface, allow_reference_overlap: bool =
     lo, hi = element_boxes(X, tri)
     pa, pk = tree.query_boxes(lo, hi)
     pa, pk = exclude_shared_vertex_pairs(tri, held_tets, pa, pk)
-    active = _intersecting(X, tri, tets, pa, pk)
+    active = intersecting(X, tri, tets, pa, pk)
     pa, pk = pa[active], pk[active]
-    g = _area_pairs_max_depth(X, depth, tri, tets, pa, pk)
+    g = area_pairs_max_depth(X, depth, tri, tets, pa, pk)
     tolerance = OVERLAP_DEPTH_RTOL * 10.0 * surface.margin
     inside = g > tolerance
     count = surface.comm.allreduce(int(np.count_nonzero(inside)))

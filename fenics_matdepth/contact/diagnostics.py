@@ -18,11 +18,9 @@ from mpi4py import MPI
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT
-from fenics_matdepth.contact.kernels import (
-    _area_pairs_max_depth,
-    _area_pairs_pressure_moments,
-    _point_depths,
-)
+from fenics_matdepth.contact.kernels.augmented import area_pairs_pressure_moments
+from fenics_matdepth.contact.kernels.collocation import point_depths
+from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth
 from fenics_matdepth.contact.surface import ContactSurface
 
 __all__ = [
@@ -57,7 +55,7 @@ def pair_depths(
     """
     s = surface
     if integration == "area":
-        return _area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
+        return area_pairs_max_depth(s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k)
     w = s.weight[s.nodes[pair_a]]
     return np.sqrt(2.0 * energy / (penalty * w))
 
@@ -84,7 +82,7 @@ def vertex_penetration(surface: ContactSurface, integration: str) -> np.ndarray:
         qa, qk = s.tree.query_boxes(points, points, margin=1e-12 * s.mean_edge)
         keep = np.all(s.tets[qk] != verts[qa, None], axis=1)
         qa, qk = qa[keep], qk[keep]
-        g = _point_depths(s.x, s.kernel_depth, s.kernel_tets, points, qa, qk)
+        g = point_depths(s.x, s.kernel_depth, s.kernel_tets, points, qa, qk)
         np.maximum.at(local, s.global_vertex[verts[qa]], g)
     out = np.empty_like(local)
     s.comm.Allreduce(local, out, op=MPI.MAX)
@@ -195,7 +193,7 @@ def pressure_moments(
         pair_a, pair_k: the intersecting area pairs.
     """
     s = surface
-    gmom, amom = _area_pairs_pressure_moments(
+    gmom, amom = area_pairs_pressure_moments(
         s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k
     )
     # each pair is evaluated on one rank (its triangle's owner): the sums over ranks are

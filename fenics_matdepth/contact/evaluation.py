@@ -16,12 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth.contact.kernels import (
-    _area_pairs,
-    _area_pairs_augmented,
-    _area_pairs_summed,
-    _collocation_pairs,
-)
+from fenics_matdepth.contact.kernels.augmented import area_pairs_augmented
+from fenics_matdepth.contact.kernels.collocation import collocation_pairs
+from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_summed
 from fenics_matdepth.contact.surface import ContactSurface
 
 __all__ = ["SummedPass", "pair_arrays"]
@@ -56,17 +53,17 @@ def pair_arrays(
         # the kernel arrays carry the split of depth-deficient tetrahedra; each pair
         # still comes out over its 7 original vertices
         if pressure is None:
-            return _area_pairs(
+            return area_pairs(
                 s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k, penalty,
                 want_grad, want_hess,
             )  # fmt: skip
         # the pressures of the held vertices (the numbering changes with the halo)
         held_pressure = np.ascontiguousarray(pressure[s.global_vertex])
-        return _area_pairs_augmented(
+        return area_pairs_augmented(
             s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k, penalty,
             held_pressure, width, want_grad, want_hess,
         )  # fmt: skip
-    return _collocation_pairs(
+    return collocation_pairs(
         s.x, s.kernel_depth, s.weight, s.kernel_tets, s.nodes[pair_a], pair_k, penalty,
         want_grad, want_hess,
     )  # fmt: skip
@@ -74,7 +71,7 @@ def pair_arrays(
 
 class SummedPass:
     """Area pairs with plain penalty, summed as the kernel makes them
-    (``kernels._area_pairs_summed``), into output buffers reused from state to state.
+    (``kernels.drivers.area_pairs_summed``), into output buffers reused from state to state.
 
     The sums are those of :func:`~fenics_matdepth.contact.assembly.gradient_array` and
     :func:`~fenics_matdepth.contact.assembly.add_jacobian_blocks` on the arrays of
@@ -134,7 +131,7 @@ class SummedPass:
             keys = np.empty(0, dtype=INDEX)
         s = surface
         energy = np.empty(pair_a.size, dtype=FLOAT)
-        _area_pairs_summed(
+        area_pairs_summed(
             s.x, s.kernel_depth, s.tri, s.kernel_tets, pair_a, pair_k, penalty, want_hess,
             positions, keys, s.bc, energy, self._grad_sum, self._reached, self._blocks,
             self._touched,

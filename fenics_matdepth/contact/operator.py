@@ -496,8 +496,8 @@ class ContactOperator:
         from its vertices' values; with ``width = w > 0`` it is ``sum over pairs of
         ((eps + p_T / w) / 2) int_{T cap K} g^2 dA``, ``p_T`` the mean of the triangle's nodal
         pressures: the pressures stiffen the penalty, and the energy has no kink where a face
-        lies flat on the other body (see ``_area_pairs_augmented``). The derivatives are exact
-        at fixed pressures.
+        lies flat on the other body (see ``kernels.augmented.area_pairs_augmented``). The
+        derivatives are exact at fixed pressures.
 
         Args:
             pressure: ``(num_vertices,)`` values >= 0, the same on every rank (only boundary
@@ -560,7 +560,7 @@ class ContactOperator:
         the tetrahedron K (not one of its own) that contains it, i.e. how deep the vertex lies
         in the other body (or, in self-contact, in another part of its own); 0 for a vertex in
         no such tetrahedron and for every vertex off the boundary. Points on a face count as
-        inside (see ``_point_depths``).
+        inside (see ``kernels.collocation.point_depths``).
 
         The contact pressure the model applies at a penetrating surface point y is
         ``eps g(y)``, plus the interpolated nodal pressure ``p(y)`` with the augmented

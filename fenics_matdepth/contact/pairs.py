@@ -13,14 +13,14 @@ from __future__ import annotations
 import numpy as np
 
 from fenics_matdepth._constants import INDEX
-from fenics_matdepth.contact.kernels import _intersecting
+from fenics_matdepth.contact.kernels.drivers import intersecting
 from fenics_matdepth.contact.surface import ContactSurface
-from fenics_matdepth.geometry.bvh import (
+from fenics_matdepth.geometry.boxes import (
     element_boxes,
     exclude_shared_vertex_pairs,
     overlapping_pairs,
 )
-from fenics_matdepth.geometry.clip import _near_pairs
+from fenics_matdepth.geometry.intersect import near_pairs
 
 __all__ = ["PairSearch", "candidate_pairs", "pair_vertices", "pattern_keys"]
 
@@ -68,7 +68,7 @@ def pattern_keys(surface: ContactSurface, integration: str, margin: float) -> np
         # boxes inflated by the margin overlap for far more pairs than come within the
         # margin (7x more than the active pairs on a flat interface); the couplings of the
         # others would be explicit zeros that the factorisation treats as nonzeros
-        pa, pk = _near_pairs(surface.x, surface.tri, surface.tets, pa, pk, margin)
+        pa, pk = near_pairs(surface.x, surface.tri, surface.tets, pa, pk, margin)
     verts = surface.global_vertex[pair_vertices(surface, integration, pa, pk)]
     n = verts.shape[1]
     a = np.repeat(verts, n, axis=1).ravel()
@@ -141,6 +141,6 @@ class PairSearch:
             # now: those a search at this state would find (4 to 5.5 ms for 192k pairs on
             # bench_newton's press, against 34 ms for a search)
             near = overlapping_pairs(surface.x, surface.tri, surface.tets, pa, pk)
-            hit = _intersecting(surface.x, surface.tri, surface.kernel_tets, pa[near], pk[near])
+            hit = intersecting(surface.x, surface.tri, surface.kernel_tets, pa[near], pk[near])
             return near[hit]
-        return _intersecting(surface.x, surface.tri, surface.kernel_tets, pa, pk)
+        return intersecting(surface.x, surface.tri, surface.kernel_tets, pa, pk)

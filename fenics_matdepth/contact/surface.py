@@ -51,7 +51,8 @@ from fenics_matdepth.depth import (
     depth_deficient_tets,
     distance_to_triangles,
 )
-from fenics_matdepth.geometry.bvh import AABBTree, element_boxes
+from fenics_matdepth.geometry.boxes import element_boxes
+from fenics_matdepth.geometry.bvh import AABBTree
 
 __all__ = ["ContactSurface", "DepthDeficiencyWarning"]
 

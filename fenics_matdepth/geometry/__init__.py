@@ -1,4 +1,5 @@
-"""Numba geometry: AABB tree, point-triangle distance, triangle-tetrahedron clipping."""
+"""Numba geometry: element boxes and pair filters, AABB tree, point-triangle distance,
+triangle-tetrahedron clipping and the intersection tests over many pairs."""
 
 from __future__ import annotations
 

@@ -28,6 +28,8 @@ inflates the query boxes; nearest triangle to points with exact point-triangle d
 (branch and bound, seeded with the previous point's answer, which makes spatially ordered
 queries cheap).
 
+Element boxes and the pair filters made of them are in `fenics_matdepth.geometry.boxes`.
+
 Lengths are in the unit of ``points``.
 """
 
@@ -36,23 +38,23 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth.geometry.distance import _point_box_dist2, _point_triangle_dist2
+from fenics_matdepth._constants import INDEX
+from fenics_matdepth.geometry.boxes import as_points, element_box_rows, rows_overlap
+from fenics_matdepth.geometry.distance import point_box_dist2, point_triangle_dist2
 
 __all__ = [
     "LEAF_SIZE",
     "REBUILD_FACTOR",
     "AABBTree",
-    "element_boxes",
-    "exclude_shared_vertex_pairs",
-    "overlapping_pairs",
 ]
 
 #: Maximum number of elements per leaf (few, since leaf tests are cheap and deep trees prune well).
 LEAF_SIZE = 4
+
 #: Rebuild when the refit quality ratio (summed internal-box area / root-box area) has grown by
 #: this factor since the last build: queries then visit about that many times more nodes.
 REBUILD_FACTOR = 2.0
+
 #: Traversal stack depth; a median-split tree over 2**60 elements is 61 levels deep, and a
 #: depth-first traversal holds at most one pending sibling per level plus the current node.
 _STACK_SIZE = 256
@@ -70,23 +72,6 @@ def _box_area(b):
     dy = b[4] - b[1]
     dz = b[5] - b[2]
     return 2.0 * (dx * dy + dy * dz + dz * dx)
-
-
-@njit(inline="always")
-def _rows_overlap(a, i, b, j, margin):
-    """Closed-interval overlap of box row a[i] inflated by margin with box row b[j].
-
-    Touching boxes overlap. Rows are indexed explicitly instead of sliced so that no array
-    views are created on the hot path.
-    """
-    return (
-        a[i, 0] - margin <= b[j, 3]
-        and a[i, 1] - margin <= b[j, 4]
-        and a[i, 2] - margin <= b[j, 5]
-        and b[j, 0] <= a[i, 3] + margin
-        and b[j, 1] <= a[i, 4] + margin
-        and b[j, 2] <= a[i, 5] + margin
-    )
 
 
 @njit(inline="always")
@@ -155,28 +140,6 @@ def _select(order, cent, lo, hi, nth, axis):
 
 
 @njit(cache=True)
-def _element_boxes(points, cells):
-    """Boxes (n, 6) = (lo xyz, hi xyz) of the elements ``cells`` (n, k) over ``points``."""
-    n = cells.shape[0]
-    k = cells.shape[1]
-    box = np.empty((n, 6), dtype=points.dtype)
-    for e in range(n):
-        v = cells[e, 0]
-        for d in range(3):
-            box[e, d] = points[v, d]
-            box[e, d + 3] = points[v, d]
-        for j in range(1, k):
-            v = cells[e, j]
-            for d in range(3):
-                c = points[v, d]
-                if c < box[e, d]:
-                    box[e, d] = c
-                elif c > box[e, d + 3]:
-                    box[e, d + 3] = c
-    return box
-
-
-@njit(cache=True)
 def _count_nodes(n, leaf_size):
     """Number of nodes of the median-split tree over n elements (its shape depends on n only)."""
     if n == 0:
@@ -211,7 +174,7 @@ def _build(points, cells, leaf_size):
         summed internal-box area, root-box area.
     """
     n = cells.shape[0]
-    box = _element_boxes(points, cells)
+    box = element_box_rows(points, cells)
     cent = np.empty((n, 3), dtype=points.dtype)
     for e in range(n):
         for d in range(3):
@@ -375,7 +338,7 @@ def _query_boxes(qbox, margin, order, node_start, node_count, node_right, elem_b
     if node_start.shape[0] == 0:
         return out_q[:0], out_e[:0]
     for q in range(nq):
-        if not _rows_overlap(qbox, q, node_box, 0, margin):
+        if not rows_overlap(qbox, q, node_box, 0, margin):
             continue
         stack[0] = 0
         top = 1
@@ -386,15 +349,15 @@ def _query_boxes(qbox, margin, order, node_start, node_count, node_right, elem_b
             if r < 0:
                 s = node_start[i]
                 for e in range(s, s + node_count[i]):
-                    if _rows_overlap(qbox, q, elem_box, e, margin):
+                    if rows_overlap(qbox, q, elem_box, e, margin):
                         out_q, out_e = _push_pair(out_q, out_e, m, q, order[e])
                         m += 1
             else:
                 # test children before pushing: halves the stack traffic
-                if _rows_overlap(qbox, q, node_box, r, margin):
+                if rows_overlap(qbox, q, node_box, r, margin):
                     stack[top] = r
                     top += 1
-                if _rows_overlap(qbox, q, node_box, i + 1, margin):
+                if rows_overlap(qbox, q, node_box, i + 1, margin):
                     stack[top] = i + 1
                     top += 1
     return out_q[:m].copy(), out_e[:m].copy()
@@ -421,7 +384,7 @@ def _nearest_triangle(points, x, order, cells_sorted, node_start, node_count, no
     for p_i in range(n):
         p = points[p_i]
         best_k = hint
-        best = _point_triangle_dist2(
+        best = point_triangle_dist2(
             p, x, cells_sorted[hint, 0], cells_sorted[hint, 1], cells_sorted[hint, 2]
         )
         stack[0] = 0
@@ -429,21 +392,21 @@ def _nearest_triangle(points, x, order, cells_sorted, node_start, node_count, no
         while top > 0:
             top -= 1
             i = stack[top]
-            if _point_box_dist2(p, node_box[i, :3], node_box[i, 3:]) >= best:
+            if point_box_dist2(p, node_box[i, :3], node_box[i, 3:]) >= best:
                 continue
             r = node_right[i]
             if r < 0:
                 s = node_start[i]
                 for e in range(s, s + node_count[i]):
-                    d2 = _point_triangle_dist2(
+                    d2 = point_triangle_dist2(
                         p, x, cells_sorted[e, 0], cells_sorted[e, 1], cells_sorted[e, 2]
                     )
                     if d2 < best:
                         best = d2
                         best_k = e
             else:
-                dl = _point_box_dist2(p, node_box[i + 1, :3], node_box[i + 1, 3:])
-                dr = _point_box_dist2(p, node_box[r, :3], node_box[r, 3:])
+                dl = point_box_dist2(p, node_box[i + 1, :3], node_box[i + 1, 3:])
+                dr = point_box_dist2(p, node_box[r, :3], node_box[r, 3:])
                 # push the farther child first so the nearer one is explored first
                 if dl <= dr:
                     if dr < best:
@@ -465,140 +428,9 @@ def _nearest_triangle(points, x, order, cells_sorted, node_start, node_count, no
     return idx, dist2
 
 
-@njit(cache=True)
-def _kept_pairs(pair_tri, pair_tet, keep, n_keep):
-    """The pairs whose ``keep`` flag is set (``n_keep`` of them), in their order."""
-    out_t = np.empty(n_keep, dtype=pair_tri.dtype)
-    out_k = np.empty(n_keep, dtype=pair_tet.dtype)
-    j = 0
-    for p in range(keep.size):
-        if keep[p]:
-            out_t[j] = pair_tri[p]
-            out_k[j] = pair_tet[p]
-            j += 1
-    return out_t, out_k
-
-
-@njit(cache=True)
-def _exclude_shared_vertex_pairs(tri_cells, tet_cells, pair_tri, pair_tet):
-    """Keep the (triangle, tetrahedron) pairs that share no vertex.
-
-    Args:
-        tri_cells: (nt, 3) triangle vertex indices.
-        tet_cells: (nk, 4) tetrahedron vertex indices, same vertex numbering.
-        pair_tri, pair_tet: (m,) candidate pairs (rows of tri_cells / tet_cells).
-
-    Returns:
-        The kept pairs (pair_tri, pair_tet), order preserved.
-    """
-    m = pair_tri.shape[0]
-    keep = np.empty(m, dtype=np.bool_)
-    n_keep = 0
-    for p in range(m):
-        t = pair_tri[p]
-        k = pair_tet[p]
-        shared = False
-        for a in range(tri_cells.shape[1]):
-            va = tri_cells[t, a]
-            for b in range(tet_cells.shape[1]):
-                if va == tet_cells[k, b]:
-                    shared = True
-        keep[p] = not shared
-        if not shared:
-            n_keep += 1
-    return _kept_pairs(pair_tri, pair_tet, keep, n_keep)
-
-
 # ------------------------------------------------------------------------------------------
 # Python API
 # ------------------------------------------------------------------------------------------
-
-
-def _as_points(points: np.ndarray) -> np.ndarray:
-    p = np.ascontiguousarray(points, dtype=FLOAT)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {p.shape}")
-    return p
-
-
-def element_boxes(points: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned boxes of elements.
-
-    Args:
-        points: (nv, 3) vertex coordinates (L).
-        cells: (n, k) vertex indices per element.
-
-    Returns:
-        (lo (n, 3), hi (n, 3)) box corners (L).
-    """
-    box = _element_boxes(_as_points(points), np.ascontiguousarray(cells, dtype=INDEX))
-    return box[:, :3].copy(), box[:, 3:].copy()
-
-
-def exclude_shared_vertex_pairs(
-    tri_cells: np.ndarray, tet_cells: np.ndarray, pair_tri: np.ndarray, pair_tet: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Drop (triangle, tetrahedron) candidate pairs that share a vertex.
-
-    A boundary triangle always touches the tetrahedra around its own vertices; those pairs are
-    not contacts (paper 4.3.1) and are removed here.
-
-    Args:
-        tri_cells: (nt, 3) triangle vertex indices.
-        tet_cells: (nk, 4) tetrahedron vertex indices, same vertex numbering as tri_cells.
-        pair_tri: (m,) triangle index of each pair.
-        pair_tet: (m,) tetrahedron index of each pair.
-
-    Returns:
-        The pairs that share no vertex, (pair_tri, pair_tet), order preserved.
-    """
-    return _exclude_shared_vertex_pairs(
-        np.ascontiguousarray(tri_cells, dtype=INDEX),
-        np.ascontiguousarray(tet_cells, dtype=INDEX),
-        np.ascontiguousarray(pair_tri, dtype=INDEX),
-        np.ascontiguousarray(pair_tet, dtype=INDEX),
-    )
-
-
-def overlapping_pairs(
-    points: np.ndarray,
-    tri_cells: np.ndarray,
-    tet_cells: np.ndarray,
-    pair_tri: np.ndarray,
-    pair_tet: np.ndarray,
-) -> np.ndarray:
-    """Which (triangle, tetrahedron) pairs have overlapping boxes now (closed boxes, no margin).
-
-    The test of :meth:`AABBTree.query_boxes` with margin 0 on the same boxes, so that pairs
-    found with a margin and filtered here are exactly those a search without margin finds.
-
-    Args:
-        points: (nv, 3) vertex coordinates (L).
-        tri_cells: (nt, 3) triangle vertex indices.
-        tet_cells: (nk, 4) tetrahedron vertex indices.
-        pair_tri, pair_tet: (m,) the pairs.
-
-    Returns:
-        Indices of the overlapping pairs, in order.
-    """
-    points = _as_points(points)
-    return _overlapping_pairs(
-        _element_boxes(points, np.ascontiguousarray(tri_cells, dtype=INDEX)),
-        _element_boxes(points, np.ascontiguousarray(tet_cells, dtype=INDEX)),
-        np.ascontiguousarray(pair_tri, dtype=INDEX),
-        np.ascontiguousarray(pair_tet, dtype=INDEX),
-    )
-
-
-@njit(cache=True)
-def _overlapping_pairs(tri_box, tet_box, pair_tri, pair_tet):
-    keep = np.empty(pair_tri.shape[0], dtype=np.int64)
-    m = 0
-    for p in range(pair_tri.shape[0]):
-        if _rows_overlap(tri_box, pair_tri[p], tet_box, pair_tet[p], 0.0):
-            keep[m] = p
-            m += 1
-    return keep[:m].copy()
 
 
 class AABBTree:
@@ -636,7 +468,7 @@ class AABBTree:
             points: (nv, 3) vertex coordinates (L), or None to reuse the last ones.
         """
         if points is not None:
-            self._points = _as_points(points)
+            self._points = as_points(points)
         p = self._points
         if self._cells.size and (self._cells.min() < 0 or self._cells.max() >= p.shape[0]):
             raise ValueError("cells reference vertices outside points")
@@ -660,7 +492,7 @@ class AABBTree:
         Args:
             points: (nv, 3) vertex coordinates (L), same numbering as at construction.
         """
-        p = _as_points(points)
+        p = as_points(points)
         if p.shape[0] != self._points.shape[0]:
             raise ValueError(
                 f"refit got {p.shape[0]} points, the tree was built over {self._points.shape[0]}"
@@ -739,8 +571,8 @@ class AABBTree:
         Returns:
             (query index (m,), element index (m,)), int64, grouped by query index.
         """
-        lo = _as_points(lo)
-        hi = _as_points(hi)
+        lo = as_points(lo)
+        hi = as_points(hi)
         if lo.shape != hi.shape:
             raise ValueError(f"lo {lo.shape} and hi {hi.shape} differ in shape")
         if margin < 0.0:
@@ -780,7 +612,7 @@ class AABBTree:
                 f"{self._cells.shape[1]}: build an AABBTree over the boundary triangles"
             )
         return _nearest_triangle(
-            _as_points(points),
+            as_points(points),
             self._points,
             self._order,
             self._cells_sorted,

@@ -10,7 +10,8 @@ coordinates every line is a 3-vector ``c`` (``c . mu = 0``): ``e_i`` for a trian
 the column ``Lam[:, j]`` for a tetrahedron face, and the vertex where lines a and b meet is
 ``mu = m / sum(m)`` with ``m = c_a x c_b``. The clipper records these two labels per vertex so
 that the contact kernels (`fenics_matdepth.contact.kernels`) can differentiate the polygon
-exactly.
+exactly. The tests over many candidate pairs built on this clipper are in
+`fenics_matdepth.geometry.intersect`.
 
 Robustness: the clipper works on barycentric values only (dimensionless). Barycentric
 coordinates of the triangle corners within rounding noise of zero (``|Lam[i, j]| <= CLIP_TOL *
@@ -37,7 +38,6 @@ import numpy as np
 from numba import njit
 
 from fenics_matdepth._constants import FLOAT
-from fenics_matdepth.geometry.bvh import _kept_pairs
 
 __all__ = [
     "CLIP_TOL",
@@ -46,19 +46,35 @@ __all__ = [
     "SHIFT_TANGENT",
     "TET_VOLUME_RTOL",
     "TRI_AREA_RTOL",
+    "area2_of",
+    "clip_nonempty",
     "clip_shift",
+    "clip_triangle",
+    "edges_and_normal",
+    "edges_normal_of",
     "intersection_polygon",
+    "shift_of",
+    "tet_frame",
+    "tet_gradients",
+    "triangle_area2",
+    "triangle_rows",
 ]
 
 #: Relative threshold (barycentric units) below which a triangle corner's barycentric
 #: coordinate is rounding noise and is snapped to exactly zero (a few ulps of the row's size).
 CLIP_TOL = 1e-14
+
+
 #: A tetrahedron with ``|6 V| <= TET_VOLUME_RTOL * h**3`` (h = longest edge) is flat: its
 #: barycentric coordinates are not defined and it contributes nothing.
 TET_VOLUME_RTOL = 1e-12
+
+
 #: A triangle with ``2 A <= TRI_AREA_RTOL * h**2`` (h = longest edge) has zero area: it
 #: contributes nothing (and its normal, hence the area gradient, is undefined).
 TRI_AREA_RTOL = 1e-14
+
+
 #: Every triangle is clipped as if moved by ``CLIP_SHIFT * sqrt(2 A)`` (A its area) along its
 #: normal ``(x1 - x0) x (x2 - x0)`` (outward for the contact surface's triangles), plus a
 #: generic in-plane component (SHIFT_TANGENT): a consistent perturbation that takes the
@@ -82,22 +98,26 @@ TRI_AREA_RTOL = 1e-14
 #: solution stalled 1 patch solve in 6 on 2 ranks), so two face lines do not meet inside an
 #: element.
 CLIP_SHIFT = 1e-9
+
+
 #: In-plane components of the clip shift, in units of its normal component, along the
 #: triangle's first edge and perpendicular to it: generic numbers, so that the shift also moves
 #: a triangle edge off a tetrahedron face through it whatever the face's orientation (a face
 #: perpendicular to the triangle, which a shift along the normal alone leaves in place: the
 #: patch test's vertical faces under its horizontal contact triangles).
 SHIFT_TANGENT = (0.3183098861837907, 0.4472135954999579)
+
+
 #: Triangle (3) plus at most one new vertex per tetrahedron face (4).
 MAX_POLYGON_VERTICES = 8
 
 
 @njit(cache=True, fastmath=False)
-def _tet_frame(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, p3x, p3y, p3z):
+def tet_frame(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, p3x, p3y, p3z):
     """6 x signed volume, squared longest edge and the cross products ``e2 x e3``, ``e3 x e1``,
     ``e1 x e2`` (``e_k = x_k - x_0``: det times the barycentric gradients 1 to 3) of a
     tetrahedron given by its vertex coordinates, as a 11-tuple (det, h2, c1x, ..., c3z). Scalars
-    in and out, so that `_intersect_pairs` runs it on many tetrahedra in one vectorised loop."""
+    in and out, so that `intersect_pairs` runs it on many tetrahedra in one vectorised loop."""
     e1x = p1x - p0x
     e1y = p1y - p0y
     e1z = p1z - p0z
@@ -137,7 +157,7 @@ def _tet_frame(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, p3x, p3y, p3z):
 
 
 @njit(cache=True, fastmath=False)
-def _tet_gradients(x_tet, grads):
+def tet_gradients(x_tet, grads):
     """Barycentric gradients of a tetrahedron.
 
     Args:
@@ -147,7 +167,7 @@ def _tet_gradients(x_tet, grads):
     Returns:
         6 x signed volume (length^3); 0.0 for a flat tetrahedron (grads then untouched).
     """
-    det, h2, c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = _tet_frame(
+    det, h2, c1x, c1y, c1z, c2x, c2y, c2z, c3x, c3y, c3z = tet_frame(
         x_tet[0, 0], x_tet[0, 1], x_tet[0, 2], x_tet[1, 0], x_tet[1, 1], x_tet[1, 2],
         x_tet[2, 0], x_tet[2, 1], x_tet[2, 2], x_tet[3, 0], x_tet[3, 1], x_tet[3, 2],
     )  # fmt: skip
@@ -169,18 +189,18 @@ def _tet_gradients(x_tet, grads):
 
 
 @njit(cache=True, fastmath=False)
-def _edges_and_normal(x_tri):
+def edges_and_normal(x_tri):
     """Edges ``a = x1 - x0``, ``b = x2 - x0`` and normal ``n = a x b`` of a triangle, as a
     9-tuple (ax, ay, az, bx, by, bz, nx, ny, nz)."""
-    return _edges_normal_of(
+    return edges_normal_of(
         x_tri[0, 0], x_tri[0, 1], x_tri[0, 2], x_tri[1, 0], x_tri[1, 1], x_tri[1, 2],
         x_tri[2, 0], x_tri[2, 1], x_tri[2, 2],
     )  # fmt: skip
 
 
 @njit(cache=True, fastmath=False)
-def _edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2):
-    """`_edges_and_normal` from the corners' coordinates (scalars)."""
+def edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2):
+    """`edges_and_normal` from the corners' coordinates (scalars)."""
     ax = x1 - x0
     ay = y1 - y0
     az = z1 - z0
@@ -196,14 +216,14 @@ def _clip_shift(x_tri):
     ``CLIP_SHIFT / sqrt(|n|) * (n + SHIFT_TANGENT[0] |n| t_1 + SHIFT_TANGENT[1] |n| t_2)``,
     ``n = (x1 - x0) x (x2 - x0)``, ``t_1`` the unit vector along ``x1 - x0`` and ``t_2 = n x
     t_1 / |n|``."""
-    ax, ay, az, _, _, _, nx, ny, nz = _edges_and_normal(x_tri)
-    return _shift_of(ax, ay, az, nx, ny, nz)
+    ax, ay, az, _, _, _, nx, ny, nz = edges_and_normal(x_tri)
+    return shift_of(ax, ay, az, nx, ny, nz)
 
 
 @njit(cache=True, error_model="numpy", fastmath=False)
-def _shift_of(ax, ay, az, nx, ny, nz):
+def shift_of(ax, ay, az, nx, ny, nz):
     """`_clip_shift` from the triangle's first edge ``a`` and normal ``n`` (scalars, so that
-    `_intersect_pairs` runs it on many triangles in one vectorised loop; the divisions are
+    `intersect_pairs` runs it on many triangles in one vectorised loop; the divisions are
     guarded, hence the numpy error model, which lets them vectorise)."""
     a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     la = np.sqrt(ax * ax + ay * ay + az * az)
@@ -221,7 +241,7 @@ def _shift_of(ax, ay, az, nx, ny, nz):
 
 
 @njit(cache=True, fastmath=False)
-def _triangle_rows(x_tri, x_tet, grads, lam):
+def triangle_rows(x_tri, x_tet, grads, lam):
     """``lam[i, j] = lambda_j(x_tri[i] + shift)`` for the 3 triangle corners, moved by the
     consistent clip shift (CLIP_SHIFT) along the triangle's normal."""
     sx, sy, sz = _clip_shift(x_tri)
@@ -230,7 +250,7 @@ def _triangle_rows(x_tri, x_tet, grads, lam):
 
 @njit(cache=True, fastmath=False)
 def _shifted_rows(x_tri, x_tet, grads, sx, sy, sz, lam):
-    """`_triangle_rows` with the triangle's clip shift ``(sx, sy, sz)`` given."""
+    """`triangle_rows` with the triangle's clip shift ``(sx, sy, sz)`` given."""
     for i in range(3):
         dx = (x_tri[i, 0] - x_tet[0, 0]) + sx
         dy = (x_tri[i, 1] - x_tet[0, 1]) + sy
@@ -254,7 +274,7 @@ def _snap(lam):
 
 
 @njit(cache=True, fastmath=False)
-def _clip(lam, mu, vlab, elab):
+def clip_triangle(lam, mu, vlab, elab):
     """Clip the parameter simplex by the half-planes ``sum_i mu_i lam[i, j] >= 0``.
 
     Sutherland-Hodgman on two alternating buffers. A vertex with ``L >= 0`` is kept with its
@@ -348,8 +368,8 @@ def _clip(lam, mu, vlab, elab):
 
 
 @njit(cache=True, fastmath=False)
-def _clip_nonempty(lam, buf):
-    """Whether `_clip` would return a polygon (n >= 3), without building it.
+def clip_nonempty(lam, buf):
+    """Whether `clip_triangle` would return a polygon (n >= 3), without building it.
 
     The same sign logic on ``lam`` (already snapped by the caller), but each vertex carries only
     its four barycentric values, interpolated along clipped edges; no labels, no early copy.
@@ -388,29 +408,18 @@ def _clip_nonempty(lam, buf):
 
 
 @njit(cache=True, fastmath=False)
-def _polygon_area_ratio(mu, n):
-    """Area of polygon ``mu[0, :n]`` divided by the area of the parameter simplex."""
-    # shoelace in (mu_1, mu_2); the simplex has area 1/2 there
-    s = 0.0
-    for k in range(n):
-        k1 = k + 1 if k + 1 < n else 0
-        s += mu[0, k, 1] * mu[0, k1, 2] - mu[0, k, 2] * mu[0, k1, 1]
-    return s
-
-
-@njit(cache=True, fastmath=False)
-def _triangle_area2(x_tri):
+def triangle_area2(x_tri):
     """Twice the triangle area (length^2), 0.0 below TRI_AREA_RTOL."""
-    ax, ay, az, bx, by, bz, nx, ny, nz = _edges_and_normal(x_tri)
+    ax, ay, az, bx, by, bz, nx, ny, nz = edges_and_normal(x_tri)
     cx = x_tri[2, 0] - x_tri[1, 0]
     cy = x_tri[2, 1] - x_tri[1, 1]
     cz = x_tri[2, 2] - x_tri[1, 2]
-    return _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz)
+    return area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz)
 
 
 @njit(cache=True, fastmath=False)
-def _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz):
-    """`_triangle_area2` from the edges ``a``, ``b``, ``c = x2 - x1`` and normal (scalars)."""
+def area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz):
+    """`triangle_area2` from the edges ``a``, ``b``, ``c = x2 - x1`` and normal (scalars)."""
     a2 = np.sqrt(nx * nx + ny * ny + nz * nz)
     h2 = max(ax * ax + ay * ay + az * az, bx * bx + by * by + bz * bz, cx * cx + cy * cy + cz * cz)
     if not (a2 > TRI_AREA_RTOL * h2):
@@ -422,275 +431,13 @@ def _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, cx, cy, cz):
 def _intersection_polygon(x_tri, x_tet, mu, vlab, elab):
     """Clip one pair; returns n (polygon in ``mu[0, :n]``, labels in ``vlab[0, :n]``)."""
     grads = np.empty((4, 3), dtype=FLOAT)
-    if _tet_gradients(x_tet, grads) == 0.0:
+    if tet_gradients(x_tet, grads) == 0.0:
         return 0
-    if _triangle_area2(x_tri) == 0.0:
+    if triangle_area2(x_tri) == 0.0:
         return 0
     lam = np.empty((3, 4), dtype=FLOAT)
-    _triangle_rows(x_tri, x_tet, grads, lam)
-    return _clip(lam, mu, vlab, elab)
-
-
-#: Pairs per block of `_intersect_pairs`: gathered into a work array, then tested in one loop
-#: that the compiler vectorises (4 pairs an instruction with AVX2).
-_BLOCK = 64
-#: Row offsets of that work array (row r of pair k at ``r * _BLOCK + k``): rows 0-8 the
-#: triangle's corners, 9-20 the tetrahedron's, 21-32 the snapped rows ``lam[i, j]`` at
-#: ``21 + 4 i + j``, 33 the decision. Unsigned, so that the compiler sees non-negative indices
-#: (numba adds a wrap-around select to signed ones, which keeps the loop from vectorising).
-_ROW = tuple(np.uint64(r * _BLOCK) for r in range(34))
-
-
-@njit(cache=True, fastmath=False)
-def _snapped_row_of(dx, dy, dz, g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z):
-    """One corner's row of `_shifted_rows` (``d`` its shifted offset from the tetrahedron's
-    vertex 0, ``g`` the gradients of lambda 1 to 3), snapped as `_snap`; scalars in and out."""
-    v1 = g1x * dx + g1y * dy + g1z * dz
-    v2 = g2x * dx + g2y * dy + g2z * dz
-    v3 = g3x * dx + g3y * dy + g3z * dz
-    v0 = 1.0 - (((0.0 + v1) + v2) + v3)
-    tol = CLIP_TOL * (1.0 + abs(v0) + abs(v1) + abs(v2) + abs(v3))
-    return (
-        0.0 if abs(v0) <= tol else v0,
-        0.0 if abs(v1) <= tol else v1,
-        0.0 if abs(v2) <= tol else v2,
-        0.0 if abs(v3) <= tol else v3,
-    )
-
-
-@njit(cache=True, error_model="numpy", fastmath=False)
-def _decide_block(w, m):
-    """The intersection test of `_intersect_pairs` on the first m pairs of a work block ``w``,
-    up to the clip: 0 (empty: zero-area triangle, flat tetrahedron or a separating face plane),
-    1 (a corner strictly inside) or 2 (the clip decides, on the snapped rows also written).
-
-    The operations of `_triangle_area2`, `_clip_shift`, `_tet_gradients`, `_shifted_rows` and
-    `_snap`, in the same order (hence the same values), on scalars and with selects instead of
-    branches, so that the loop vectorises; the tests become sign tests of a min-max: a face
-    plane separates where ``min_j max_i lam[i, j] < 0``, a corner is inside where
-    ``max_i min_j lam[i, j] > 0``. A zero-area triangle or a flat tetrahedron gives infinite or
-    NaN values here (the numpy error model: no exceptions), which are discarded.
-    """
-    for k in range(m):
-        q = np.uint64(k)
-        x0 = w[_ROW[0] + q]
-        y0 = w[_ROW[1] + q]
-        z0 = w[_ROW[2] + q]
-        x1 = w[_ROW[3] + q]
-        y1 = w[_ROW[4] + q]
-        z1 = w[_ROW[5] + q]
-        x2 = w[_ROW[6] + q]
-        y2 = w[_ROW[7] + q]
-        z2 = w[_ROW[8] + q]
-        ax, ay, az, bx, by, bz, nx, ny, nz = _edges_normal_of(x0, y0, z0, x1, y1, z1, x2, y2, z2)
-        area2 = _area2_of(ax, ay, az, bx, by, bz, nx, ny, nz, x2 - x1, y2 - y1, z2 - z1)
-        sx, sy, sz = _shift_of(ax, ay, az, nx, ny, nz)
-        p0x = w[_ROW[9] + q]
-        p0y = w[_ROW[10] + q]
-        p0z = w[_ROW[11] + q]
-        det, h2, g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z = _tet_frame(
-            p0x, p0y, p0z, w[_ROW[12] + q], w[_ROW[13] + q], w[_ROW[14] + q],
-            w[_ROW[15] + q], w[_ROW[16] + q], w[_ROW[17] + q],
-            w[_ROW[18] + q], w[_ROW[19] + q], w[_ROW[20] + q],
-        )  # fmt: skip
-        valid = (area2 != 0.0) & (abs(det) > TET_VOLUME_RTOL * h2 * np.sqrt(h2))
-        inv = 1.0 / det
-        g1x *= inv
-        g1y *= inv
-        g1z *= inv
-        g2x *= inv
-        g2y *= inv
-        g2z *= inv
-        g3x *= inv
-        g3y *= inv
-        g3z *= inv
-        # the three corners' rows: `_shifted_rows`, then `_snap`
-        l00, l01, l02, l03 = _snapped_row_of(
-            (x0 - p0x) + sx, (y0 - p0y) + sy, (z0 - p0z) + sz,
-            g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z,
-        )  # fmt: skip
-        l10, l11, l12, l13 = _snapped_row_of(
-            (x1 - p0x) + sx, (y1 - p0y) + sy, (z1 - p0z) + sz,
-            g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z,
-        )  # fmt: skip
-        l20, l21, l22, l23 = _snapped_row_of(
-            (x2 - p0x) + sx, (y2 - p0y) + sy, (z2 - p0z) + sz,
-            g1x, g1y, g1z, g2x, g2y, g2z, g3x, g3y, g3z,
-        )  # fmt: skip
-        w[_ROW[21] + q] = l00
-        w[_ROW[22] + q] = l01
-        w[_ROW[23] + q] = l02
-        w[_ROW[24] + q] = l03
-        w[_ROW[25] + q] = l10
-        w[_ROW[26] + q] = l11
-        w[_ROW[27] + q] = l12
-        w[_ROW[28] + q] = l13
-        w[_ROW[29] + q] = l20
-        w[_ROW[30] + q] = l21
-        w[_ROW[31] + q] = l22
-        w[_ROW[32] + q] = l23
-        separating = min(
-            min(max(max(l00, l10), l20), max(max(l01, l11), l21)),
-            min(max(max(l02, l12), l22), max(max(l03, l13), l23)),
-        )
-        inside = max(
-            max(min(min(l00, l01), min(l02, l03)), min(min(l10, l11), min(l12, l13))),
-            min(min(l20, l21), min(l22, l23)),
-        )
-        decided = 1.0 if inside > 0.0 else 2.0
-        w[_ROW[33] + q] = decided if (valid & (separating >= 0.0)) else 0.0
-
-
-@njit(cache=True, fastmath=False)
-def _intersect_pairs(x, tri, tet, pair_tri, pair_tet, out):
-    """Intersection test for many pairs: ``out[p] = True`` where the polygon is non-empty.
-
-    The decisions of `_triangle_area2`, `_tet_gradients`, `_triangle_rows`, `_snap`, the
-    separating face plane and the corner inside (as `_clip`) and `_clip_nonempty`. The pairs
-    go in blocks of _BLOCK: their 7 vertices are gathered into a work array, `_decide_block`
-    computes every pair's snapped rows and settles the pairs that need no clip in one
-    vectorised loop, and `_clip_nonempty` decides the rest, one by one.
-
-    Args:
-        x: (nv, 3) current vertex coordinates.
-        tri: (nt, 3) boundary triangles (vertex indices).
-        tet: (nk, 4) tetrahedra (vertex indices).
-        pair_tri, pair_tet: (np,) candidate pairs.
-        out: (np,) bool output.
-
-    Returns:
-        Number of intersecting pairs.
-    """
-    w = np.empty(34 * _BLOCK, dtype=FLOAT)
-    lam = np.empty((3, 4), dtype=FLOAT)
-    buf = np.empty((2, MAX_POLYGON_VERTICES, 4), dtype=FLOAT)
-    count = 0
-    n = pair_tri.shape[0]
-    for start in range(0, n, _BLOCK):
-        m = min(_BLOCK, n - start)
-        for k in range(m):
-            t = pair_tri[start + k]
-            c = pair_tet[start + k]
-            for a in range(3):
-                v = tri[t, a]
-                for r in range(3):
-                    w[(3 * a + r) * _BLOCK + k] = x[v, r]
-            for a in range(4):
-                v = tet[c, a]
-                for r in range(3):
-                    w[(9 + 3 * a + r) * _BLOCK + k] = x[v, r]
-        _decide_block(w, m)
-        for k in range(m):
-            decided = w[33 * _BLOCK + k]
-            hit = decided == 1.0
-            if decided == 2.0:
-                for i in range(3):
-                    for j in range(4):
-                        lam[i, j] = w[(21 + 4 * i + j) * _BLOCK + k]
-                hit = _clip_nonempty(lam, buf)
-            out[start + k] = hit
-            count += hit
-    return count
-
-
-@njit(cache=True, fastmath=False)
-def _axis_gap(xs, xt, nx, ny, nz):
-    """Gap between the projections of triangle ``xs`` and tetrahedron ``xt`` on the axis n
-    (length times |n|; negative when the projections overlap)."""
-    t_lo = np.inf
-    t_hi = -np.inf
-    for a in range(3):
-        d = xs[a, 0] * nx + xs[a, 1] * ny + xs[a, 2] * nz
-        t_lo = min(t_lo, d)
-        t_hi = max(t_hi, d)
-    k_lo = np.inf
-    k_hi = -np.inf
-    for a in range(4):
-        d = xt[a, 0] * nx + xt[a, 1] * ny + xt[a, 2] * nz
-        k_lo = min(k_lo, d)
-        k_hi = max(k_hi, d)
-    return max(k_lo - t_hi, t_lo - k_hi)
-
-
-@njit(cache=True, fastmath=False)
-def _near_pairs(x, tri, tet, pair_tri, pair_tet, gap):
-    """The pairs that no separating axis holds more than ``gap`` apart (conservative).
-
-    The axes are those of the separating axis theorem for a triangle and a tetrahedron: the
-    triangle's normal, the four face normals and the 18 cross products of a triangle edge with
-    a tetrahedron edge. A pair is dropped when the projections of the two on one axis are more
-    than ``gap`` apart: they are then further apart than ``gap``. Every pair within ``gap`` is
-    kept (and some slightly further apart, whose closest points are two vertices or a vertex
-    and an edge, where the projected gap underestimates the distance).
-
-    Args:
-        x: (nv, 3) vertex coordinates (length).
-        tri: (nt, 3) triangles; tet: (nk, 4) tetrahedra (vertex indices).
-        pair_tri, pair_tet: (np,) candidate pairs.
-        gap: distance (length) up to which pairs are kept.
-
-    Returns:
-        The kept pairs (pair_tri, pair_tet), order preserved.
-    """
-    m = pair_tri.shape[0]
-    keep = np.empty(m, dtype=np.bool_)
-    xt = np.empty((4, 3), dtype=FLOAT)
-    xs = np.empty((3, 3), dtype=FLOAT)
-    te = np.empty((6, 3), dtype=FLOAT)
-    se = np.empty((3, 3), dtype=FLOAT)
-    tet_edges = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-    faces = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
-    n_keep = 0
-    for p in range(m):
-        for a in range(4):
-            for r in range(3):
-                xt[a, r] = x[tet[pair_tet[p], a], r]
-        for a in range(3):
-            for r in range(3):
-                xs[a, r] = x[tri[pair_tri[p], a], r]
-        for e in range(6):
-            for r in range(3):
-                te[e, r] = xt[tet_edges[e][1], r] - xt[tet_edges[e][0], r]
-        for e in range(3):
-            for r in range(3):
-                se[e, r] = xs[(e + 1) % 3, r] - xs[e, r]
-        separated = False
-        # triangle normal (edges 0 x 1) and face normals (edges of each face)
-        for f in range(5):
-            if f == 0:
-                ax, ay, az = se[0, 0], se[0, 1], se[0, 2]
-                bx, by, bz = se[1, 0], se[1, 1], se[1, 2]
-            else:
-                i0, i1, i2 = faces[f - 1]
-                ax = xt[i1, 0] - xt[i0, 0]
-                ay = xt[i1, 1] - xt[i0, 1]
-                az = xt[i1, 2] - xt[i0, 2]
-                bx = xt[i2, 0] - xt[i0, 0]
-                by = xt[i2, 1] - xt[i0, 1]
-                bz = xt[i2, 2] - xt[i0, 2]
-            nx = ay * bz - az * by
-            ny = az * bx - ax * bz
-            nz = ax * by - ay * bx
-            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-            if norm > 0.0 and _axis_gap(xs, xt, nx, ny, nz) > gap * norm:
-                separated = True
-                break
-        if not separated:
-            for e in range(3):
-                for f in range(6):
-                    nx = se[e, 1] * te[f, 2] - se[e, 2] * te[f, 1]
-                    ny = se[e, 2] * te[f, 0] - se[e, 0] * te[f, 2]
-                    nz = se[e, 0] * te[f, 1] - se[e, 1] * te[f, 0]
-                    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-                    if norm > 0.0 and _axis_gap(xs, xt, nx, ny, nz) > gap * norm:
-                        separated = True
-                        break
-                if separated:
-                    break
-        keep[p] = not separated
-        if keep[p]:
-            n_keep += 1
-    return _kept_pairs(pair_tri, pair_tet, keep, n_keep)
+    triangle_rows(x_tri, x_tet, grads, lam)
+    return clip_triangle(lam, mu, vlab, elab)
 
 
 def intersection_polygon(x_tri: np.ndarray, x_tet: np.ndarray) -> np.ndarray:

@@ -18,6 +18,8 @@ from numba import njit
 from fenics_matdepth._constants import FLOAT, INDEX
 
 __all__ = [
+    "point_box_dist2",
+    "point_triangle_dist2",
     "nearest_triangle_bruteforce",
     "point_triangle_closest_point",
     "point_triangle_distance",
@@ -103,7 +105,7 @@ def _closest_point_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @njit(inline="always")
-def _point_triangle_dist2(p, x, i0, i1, i2):
+def point_triangle_dist2(p, x, i0, i1, i2):
     """Squared distance from point p (3,) to the triangle with vertex rows i0, i1, i2 of x."""
     qx, qy, qz = _closest_point_triangle(
         p[0], p[1], p[2],
@@ -116,7 +118,7 @@ def _point_triangle_dist2(p, x, i0, i1, i2):
 
 
 @njit(inline="always")
-def _point_box_dist2(p, lo, hi):
+def point_box_dist2(p, lo, hi):
     """Squared distance from point p (3,) to the box [lo, hi] (0 inside)."""
     d2 = 0.0
     for k in range(3):
@@ -171,7 +173,7 @@ def _nearest_triangle_bruteforce(points, x, triangles):
     for i in range(n):
         p = points[i]
         for t in range(triangles.shape[0]):
-            d2 = _point_triangle_dist2(p, x, triangles[t, 0], triangles[t, 1], triangles[t, 2])
+            d2 = point_triangle_dist2(p, x, triangles[t, 0], triangles[t, 1], triangles[t, 2])
             if d2 < best[i]:
                 best[i] = d2
                 idx[i] = t
