@@ -33,12 +33,13 @@ from fenics_matdepth.augmented import (
 )
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
+from fenics_matdepth.contact.surface import DepthDeficiencyWarning
 from fenics_matdepth.continuation import ContinuationStage, PenaltyContinuation
 from fenics_matdepth.depth import depth_deficiency, material_depth
 from fenics_matdepth.dynamics import BackwardEuler, Newmark
 from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
 from fenics_matdepth.problems import ContactProblem, NonlinearContactProblem, rigid_body_modes
-from fenics_matdepth.results import LoadStep, SolveResult, StopRequested, TimeStep
+from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
 from fenics_matdepth.stepping import solve_load_steps, solve_time_steps
 from fenics_matdepth.system_assembler import SystemAssembler
 
@@ -49,12 +50,14 @@ __all__ = [
     "ContactOperator",
     "ContactProblem",
     "ContinuationStage",
+    "DepthDeficiencyWarning",
     "LoadStep",
     "Newmark",
     "NonlinearContactProblem",
     "PenaltyContinuation",
     "RigidModeDamping",
     "RigidRotation",
+    "Solvable",
     "SolveResult",
     "StopRequested",
     "SystemAssembler",

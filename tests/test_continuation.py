@@ -41,6 +41,32 @@ def test_penalty_setter_rescales_the_contact_terms():
     assert contact.penalty == 600.0
 
 
+def test_the_operator_owns_the_penalty():
+    """``penalty_revision`` moves only when the value changes; ``penalty_set_to`` restores the
+    penalty after its block, also when the block raises; a problem starts a solve on the last
+    solve's factorisation only at the revision that solve converged at."""
+    comm = MPI.COMM_WORLD
+    problem, g = _touching_problem(comm)
+    contact = problem.contact
+    start, revision = contact.penalty, contact.penalty_revision
+    contact.penalty = start
+    assert contact.penalty_revision == revision
+    with contact.penalty_set_to(2.0 * start) as op:
+        assert op is contact and contact.penalty == 2.0 * start
+        assert contact.penalty_revision == revision + 1
+    assert contact.penalty == start and contact.penalty_revision == revision + 2
+    with pytest.raises(RuntimeError, match="inside"):
+        with contact.penalty_set_to(5.0 * start):
+            raise RuntimeError("inside")
+    assert contact.penalty == start
+    with pytest.raises(ValueError, match="penalty must be a positive number"):
+        with contact.penalty_set_to(-1.0):
+            pass
+    assert contact.penalty == start
+    g.x.array.reshape(-1, 3)[:, 2] = -0.02
+    assert problem.solve().converged
+    assert problem._carried_revision == contact.penalty_revision
+
 def _press(comm, factor: float, mesh=None, **snes_tolerances):
     """The soft block of tests/test_hard_steps.py at a penalty of ``factor`` E/h; returns the
     problem, the function setting the press for a load factor (1: one element height, 0.05)

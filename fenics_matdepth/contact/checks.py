@@ -15,7 +15,8 @@ import numpy as np
 from fenics_matdepth.contact.kernels.drivers import intersecting
 from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth
 from fenics_matdepth.contact.surface import ContactSurface
-from fenics_matdepth.geometry.bvh import AABBTree, element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.boxes import element_boxes, exclude_shared_vertex_pairs
+from fenics_matdepth.geometry.bvh import AABBTree
 
 __all__ = ["check_contact_state"]
 
