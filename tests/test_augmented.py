@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_kernels import fd_derivatives, random_configs, rel_err, split
+from conftest import assert_fd_derivatives
+from test_kernels import polygon_mu, random_configs, split
 from test_validation import PATCH_PRESSURE, _report, _solve_patch
 
 from fenics_matdepth.contact.kernels import (
@@ -14,8 +15,6 @@ from fenics_matdepth.contact.kernels import (
     pressure_moments,
 )
 from fenics_matdepth.geometry.clip import (
-    MAX_POLYGON_VERTICES,
-    _intersection_polygon,
     clip_shift,
 )
 
@@ -23,19 +22,11 @@ EPS = 3.0
 FD_RTOL = 1e-6
 
 
-def _polygon(x_tri, x_tet):
-    mu = np.empty((2, MAX_POLYGON_VERTICES, 3))
-    vlab = np.empty((2, MAX_POLYGON_VERTICES, 2), dtype=np.int64)
-    elab = np.empty((2, MAX_POLYGON_VERTICES), dtype=np.int64)
-    n = _intersection_polygon(x_tri, x_tet, mu, vlab, elab)
-    return mu[0, :n].copy()
-
-
 def _quadrature(x_tri, x_tet, depth, integrand):
     """``int_{T cap K} integrand(mu, g) dA`` by the edge-midpoint rule (exact for quadratics)
     on a fan of the intersection polygon; ``g`` from barycentric coordinates computed here, at
     the points of the triangle moved by the clipper's consistent shift (`clip_shift`)."""
-    mu = _polygon(x_tri, x_tet)
+    mu = polygon_mu(x_tri, x_tet)
     shifted = x_tri + clip_shift(x_tri)
     e = (x_tet[1:] - x_tet[0]).T
 
@@ -93,11 +84,7 @@ def test_gradient_hessian_finite_differences(seed):
             return augmented_pair_energy(*split(x), depth, EPS, p)
 
         x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
-        _, grad, hess = f(x0)
-        g_fd, h_fd = fd_derivatives(f, x0)
-        assert rel_err(grad, g_fd) < FD_RTOL
-        assert rel_err(hess, h_fd) < FD_RTOL
-        assert np.abs(hess - hess.T).max() <= 1e-12 * np.abs(hess).max()
+        assert_fd_derivatives(f, x0, FD_RTOL, symmetric=True)
 
 
 def test_derivatives_split_tetrahedron():
@@ -111,11 +98,8 @@ def test_derivatives_split_tetrahedron():
         return augmented_pair_energy(*split(x), depth, EPS, p, centroid_depth=0.15)
 
     x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
-    energy, grad, hess = f(x0)
+    energy, _, _ = assert_fd_derivatives(f, x0, FD_RTOL)
     assert energy > 0.0
-    g_fd, h_fd = fd_derivatives(f, x0)
-    assert rel_err(grad, g_fd) < FD_RTOL
-    assert rel_err(hess, h_fd) < FD_RTOL
 
 
 def test_pressure_moments():
@@ -160,9 +144,7 @@ def test_quadratic_pressure_term(seed):
             return augmented_pair_energy(*split(x), depth, EPS, p, width=WIDTH)
 
         x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
-        g_fd, h_fd = fd_derivatives(f, x0)
-        assert rel_err(grad, g_fd) < FD_RTOL
-        assert rel_err(hess, h_fd) < FD_RTOL
+        assert_fd_derivatives(f, x0, FD_RTOL, exact=(grad, hess))
 
 
 def _flat_on_face(s):

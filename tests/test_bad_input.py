@@ -14,7 +14,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 import pytest
-import ufl
+from conftest import neo_hookean_residual
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
@@ -248,10 +248,7 @@ def test_unknown_integration(cube):
 def _problem(mesh, depth, bcs=None):
     V = _vector_space(mesh)
     u = dolfinx.fem.Function(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
-    F = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    F, _ = neo_hookean_residual(u)
     bottom = dolfinx.fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[2], 0.0))
     top = dolfinx.fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[2], 1.0))
     g = dolfinx.fem.Function(V)

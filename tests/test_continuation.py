@@ -67,6 +67,7 @@ def test_the_operator_owns_the_penalty():
     assert problem.solve().converged
     assert problem._carried_revision == contact.penalty_revision
 
+
 def _press(comm, factor: float, mesh=None, **snes_tolerances):
     """The soft block of tests/test_hard_steps.py at a penalty of ``factor`` E/h; returns the
     problem, the function setting the press for a load factor (1: one element height, 0.05)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import ufl
+from conftest import neo_hookean_residual
 
 import fenics_matdepth as fm
 from fenics_matdepth.results import SolveResult
@@ -34,11 +35,8 @@ class _Cantilever:
         V = self.V = dolfinx.fem.functionspace(self.mesh, ("Lagrange", 1, (3,)))
         u = self.u = dolfinx.fem.Function(V)
         v = ufl.TestFunction(V)
-        mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E_BEAM, NU_BEAM)
-        F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-        psi = fm.materials.neo_hookean(F_def, mu, kappa)
+        self.elastic, psi = neo_hookean_residual(u, E_BEAM, NU_BEAM)
         self.strain_energy = psi * ufl.dx
-        self.elastic = ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
         clamped = dolfinx.mesh.locate_entities_boundary(
             self.mesh, 2, lambda x: np.isclose(x[0], 0.0)
         )
@@ -236,9 +234,7 @@ class _Impact:
         V = self.V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
         u = self.u = dolfinx.fem.Function(V)
         v = ufl.TestFunction(V)
-        mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E_BALL, NU_BALL)
-        F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-        psi = fm.materials.neo_hookean(F_def, mu, kappa)
+        elastic, psi = neo_hookean_residual(u, E_BALL, NU_BALL)
         g = ufl.as_vector((0.0, 0.0, -gravity))
         dx = ufl.dx(domain=mesh)
         self.strain_energy = psi * dx
@@ -252,9 +248,7 @@ class _Impact:
             u, fm.material_depth(mesh), penalty=fm.propose_penalty(mesh, E_BALL, factor=factor)
         )
         self.integrator = make_integrator(u)
-        residual = (
-            self.integrator.inertia(v) + ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
-        )
+        residual = self.integrator.inertia(v) + elastic
         residual -= RHO_BALL * ufl.inner(g, v) * dx
         v0 = dolfinx.fem.Function(V)
         v0.interpolate(velocity)
@@ -315,13 +309,11 @@ def _free_block(comm, make_integrator, gravity: float = 9.81):
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     v = ufl.TestFunction(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(10.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
     g = ufl.as_vector((0.0, 0.0, -gravity))
     dx = ufl.dx(domain=mesh)
+    elastic, psi = neo_hookean_residual(u, 10.0, 0.3, dx=dx)
     integrator = make_integrator(u)
-    residual = integrator.inertia(v) + ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * dx
+    residual = integrator.inertia(v) + elastic
     residual -= 2.0 * ufl.inner(g, v) * dx
     potential = psi * dx - 2.0 * ufl.inner(g, u) * dx
     return mesh, u, integrator, residual, potential

@@ -21,6 +21,7 @@ import dolfinx.fem.petsc
 import numpy as np
 import pytest
 import ufl
+from conftest import clamped_and_moved, neo_hookean_residual
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
@@ -193,20 +194,9 @@ def _solve(comm) -> tuple[dict, float, int]:
     mesh = _mesh(comm, _pressed_pair)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F, mu, kappa)
-    residual = ufl.inner(ufl.diff(psi, F), ufl.grad(ufl.TestFunction(V))) * ufl.dx
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.0))
-    g = dolfinx.fem.Function(V)
+    residual, psi = neo_hookean_residual(u)
+    bcs, g = clamped_and_moved(V, lambda x: np.isclose(x[2], 0.0), lambda x: np.isclose(x[2], 1.0))
     g.x.array.reshape(-1, 3)[:, 2] = -0.03
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
-        ),
-        dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, 2, top)),
-    ]
     contact = ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
     # 1e-12 of the initial residual: a CI run on 2 ranks reached 2.2e-14 (1.6e-13 relative),
     # its round-off floor, and stalled there when asked for 1e-13

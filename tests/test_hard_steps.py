@@ -12,42 +12,29 @@ import dolfinx
 import numpy as np
 import pytest
 import ufl
+from conftest import merged_mesh, min_det_F, neo_hookean_residual
 from test_operator import _box_tets
 from test_solvers import _touching_problem
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
+from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.checkpoint import Checkpoint
-
-
-def _min_det_F_ufl(u: dolfinx.fem.Function) -> float:
-    """Smallest det F over the cells, from UFL (independent of the library's evaluation)."""
-    mesh = u.function_space.mesh
-    DG0 = dolfinx.fem.functionspace(mesh, ("DG", 0))
-    det = dolfinx.fem.Function(DG0)
-    det.interpolate(
-        dolfinx.fem.Expression(ufl.det(ufl.Identity(3) + ufl.grad(u)), interpolation_points(DG0))
-    )
-    local = det.x.array.min() if det.x.array.size else np.inf
-    return mesh.comm.allreduce(local, op=MPI.MIN)
 
 
 def _soft_block_press(comm, solver: str, mesh=None):
     """A soft block (10 x 10 x 10 cells, height 0.5: elements 0.05 high) standing on a larger,
     stiffer block; its top face is moved down by ``push`` (set through the returned g)."""
     if mesh is None:
-        xa, ca = _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
-        xb, cb = _box_tets(10, (0.25, 0.25, 0.5), (0.5, 0.5, 0.5))
-        cells = np.vstack((ca, cb + xa.shape[0]))
-        mesh = create_tetrahedral_mesh(comm, cells, np.vstack((xa, xb)))
+        mesh = merged_mesh(
+            comm,
+            _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
+            _box_tets(10, (0.25, 0.25, 0.5), (0.5, 0.5, 0.5)),
+        )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     soft = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("DG", 0)))
     soft.interpolate(lambda x: np.where(x[2] > 0.5, 0.1, 1.0))
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = soft * fm.materials.neo_hookean(F_def, mu, kappa)
-    F = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    F, psi = neo_hookean_residual(u, scale=soft)
     bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
     top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.0))
     g = dolfinx.fem.Function(V)
@@ -91,8 +78,8 @@ def test_prescribed_increment_of_one_element_height_in_one_step(solver):
     assert result.converged and result.iterations <= 12, result.residual_norms
     assert result.residual_norms[0] < 1.0, result.residual_norms  # no inverted start
     assert result.residual_norms[-1] <= 1e-10 * result.residual_norms[0]
-    assert _min_det_F_ufl(one.u) > 0.0
-    assert np.isclose(result.min_det_F, _min_det_F_ufl(one.u), rtol=1e-10)
+    assert min_det_F(one.u) > 0.0
+    assert np.isclose(result.min_det_F, min_det_F(one.u), rtol=1e-10)
     # the Dirichlet dofs reached their values
     offset = one.u.x.array.reshape(-1, 3)[top] - g1.x.array.reshape(-1, 3)[top]
     assert np.abs(offset).max(initial=0.0) <= 1e-12
@@ -118,10 +105,7 @@ def _indented_block(comm, solver: str, depth: float, line_search: str = "bt"):
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
-    F = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    F, _ = neo_hookean_residual(u)
     bottom = dolfinx.fem.locate_dofs_geometrical(V, lambda x: np.isclose(x[2], 0.0))
     disc = dolfinx.fem.locate_dofs_geometrical(
         V, lambda x: np.isclose(x[2], 0.5) & (np.hypot(x[0] - 0.5, x[1] - 0.5) < 0.2)
@@ -163,7 +147,7 @@ def test_inverting_trial_state_is_rejected():
         assert result.converged
         assert result.rejected_states >= 1, solver
         assert result.residual_norms[-1] <= 1e-10 * result.residual_norms[0]
-        assert _min_det_F_ufl(problem.u) > 0.0
+        assert min_det_F(problem.u) > 0.0
 
 
 def test_load_step_cut_after_repeated_rejection():
@@ -182,7 +166,7 @@ def test_load_step_cut_after_repeated_rejection():
     steps = fm.solve_load_steps(problem, set_load, num_steps=1, progress=False)
     assert steps[0].cuts >= 1 and np.isclose(steps[-1].load, 1.0)
     assert all(s.diagnostics["min_det_F"] > 0.0 for s in steps)
-    assert np.isclose(steps[-1].diagnostics["min_det_F"], _min_det_F_ufl(problem.u), rtol=1e-10)
+    assert np.isclose(steps[-1].diagnostics["min_det_F"], min_det_F(problem.u), rtol=1e-10)
 
 
 def test_predictor_reaches_the_same_solution():
@@ -209,9 +193,7 @@ def test_predictor_reaches_the_same_solution():
     r_extr = [s.residual_norms[0] for s in results["extrapolate"][1][1:]]
     assert all(e < n for e, n in zip(r_extr, r_none, strict=True)), (r_extr, r_none)
     # min det F in every step record agrees with UFL's at the end
-    assert np.isclose(
-        results["extrapolate"][1][-1].diagnostics["min_det_F"], _min_det_F_ufl(problem.u)
-    )
+    assert np.isclose(results["extrapolate"][1][-1].diagnostics["min_det_F"], min_det_F(problem.u))
 
 
 class _Interrupted(Exception):

@@ -7,8 +7,10 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
+from conftest import assert_fd_derivatives, rel_err
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_clip import exact_barycentrics
 
 from fenics_matdepth.contact.kernels import collocation_energy, pair_energy
 from fenics_matdepth.contact.kernels.area_derivatives import clip_shift_jacobian
@@ -35,24 +37,6 @@ def area_fun(depth, penalty=EPS):
         return pair_energy(*split(x), depth, penalty)
 
     return f
-
-
-def fd_derivatives(f, x0, h=1e-4):
-    """4th-order central differences of E (-> gradient) and of the gradient (-> Hessian)."""
-    n = x0.size
-    g = np.empty(n)
-    hess = np.empty((n, n))
-    for k in range(n):
-        e = np.zeros(n)
-        e[k] = h
-        fm2, fm1, fp1, fp2 = f(x0 - 2 * e), f(x0 - e), f(x0 + e), f(x0 + 2 * e)
-        g[k] = (fm2[0] - 8 * fm1[0] + 8 * fp1[0] - fp2[0]) / (12 * h)
-        hess[:, k] = (fm2[1] - 8 * fm1[1] + 8 * fp1[1] - fp2[1]) / (12 * h)
-    return g, hess
-
-
-def rel_err(a, b):
-    return np.abs(a - b).max() / np.abs(b).max()
 
 
 def polygon_mu(x_tri, x_tet):
@@ -102,22 +86,8 @@ def _det3(a, b, c):
 def exact_phi(x_tri, x_tet, depth):
     """Exact int_P g^2 dxi over the clipped parameter polygon (rational arithmetic), of the
     triangle moved by the clipper's consistent shift (`clip_shift`, added exactly)."""
-    shift = clip_shift(x_tri)
-    xs = [
-        [Fraction(float(v)) + Fraction(float(d)) for v, d in zip(row, shift, strict=True)]
-        for row in x_tri
-    ]
-    xt = [[Fraction(float(v)) for v in row] for row in x_tet]
+    lam = exact_barycentrics(x_tri, x_tet, clip_shift(x_tri))
     d = [Fraction(float(v)) for v in depth]
-    e = [[xt[k][r] - xt[0][r] for r in range(3)] for k in (1, 2, 3)]
-    det = _det3(*e)
-    lam = []
-    for y in xs:
-        b = [y[r] - xt[0][r] for r in range(3)]
-        l1 = _det3(b, e[1], e[2]) / det
-        l2 = _det3(e[0], b, e[2]) / det
-        l3 = _det3(e[0], e[1], b) / det
-        lam.append([1 - l1 - l2 - l3, l1, l2, l3])
     poly = [(Fraction(1), Fraction(0), Fraction(0))]
     poly += [(Fraction(0), Fraction(1), Fraction(0)), (Fraction(0), Fraction(0), Fraction(1))]
     for j in range(4):
@@ -215,12 +185,7 @@ def test_energy_against_exact_rational_adversarial(tri, tet, depth):
 def test_gradient_hessian_finite_differences(seed):
     for x_tri, x_tet, depth in random_configs(seed, 15):
         x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
-        f = area_fun(depth)
-        _, grad, hess = f(x0)
-        g_fd, h_fd = fd_derivatives(f, x0)
-        assert rel_err(grad, g_fd) < FD_RTOL
-        assert rel_err(hess, h_fd) < FD_RTOL
-        assert np.abs(hess - hess.T).max() <= 1e-12 * np.abs(hess).max()
+        assert_fd_derivatives(area_fun(depth), x0, FD_RTOL, symmetric=True)
 
 
 def test_gradient_hessian_edge_on_face_boundary_terms():
@@ -230,12 +195,8 @@ def test_gradient_hessian_edge_on_face_boundary_terms():
     depth = np.array([0.9, 0.4, 0.6, 0.8])  # g != 0 on every face
     x_tri = np.array([[-0.3, 0.2, 0.3], [0.8, -0.2, 0.1], [0.1, 0.9, 0.2]])
     x0 = np.concatenate([x_tri.ravel(), x_tet.ravel()])
-    f = area_fun(depth)
-    _, grad, hess = f(x0)
     assert len(polygon_mu(x_tri, x_tet)) >= 5
-    g_fd, h_fd = fd_derivatives(f, x0)
-    assert rel_err(grad, g_fd) < FD_RTOL
-    assert rel_err(hess, h_fd) < FD_RTOL
+    assert_fd_derivatives(area_fun(depth), x0, FD_RTOL)
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
@@ -326,9 +287,7 @@ def test_collocation_value_and_derivatives():
         def f(x):
             return collocation_energy(x[:3], x[3:].reshape(4, 3), depth, weight, EPS)
 
-        g_fd, h_fd = fd_derivatives(f, x0)
-        assert rel_err(grad, g_fd) < FD_RTOL
-        assert rel_err(hess, h_fd) < FD_RTOL
+        assert_fd_derivatives(f, x0, FD_RTOL, exact=(grad, hess))
     assert checked > 5
     outside = collocation_energy(np.array([2.0, 2.0, 2.0]), x_tet, depth, weight, EPS)
     assert outside[0] == 0.0

@@ -10,6 +10,7 @@ import dolfinx.fem.petsc
 import numpy as np
 import pytest
 import ufl
+from conftest import assert_operator_derivatives, merged_mesh, neo_hookean, operator_residual
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
@@ -43,9 +44,11 @@ def _box_tets(n, origin, size) -> tuple[np.ndarray, np.ndarray]:
 
 def _two_boxes(comm: MPI.Comm, n: int = 3) -> dolfinx.mesh.Mesh:
     """Two unit boxes in one mesh, the upper one sunk 0.2 into the lower one and shifted."""
-    xa, ca = _box_tets(n, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    xb, cb = _box_tets(n + 1, (0.23, 0.11, 0.8), (0.9, 0.8, 1.0))
-    return create_tetrahedral_mesh(comm, np.vstack((ca, cb + xa.shape[0])), np.vstack((xa, xb)))
+    return merged_mesh(
+        comm,
+        _box_tets(n, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        _box_tets(n + 1, (0.23, 0.11, 0.8), (0.9, 0.8, 1.0)),
+    )
 
 
 def _setup(comm, integration):
@@ -62,52 +65,12 @@ def _setup(comm, integration):
     return mesh, V, u, op
 
 
-def _residual(op, V):
-    """A PETSc vector holding dE/du (a copy: a Function's petsc_vec dies with the Function)."""
-    w = dolfinx.fem.Function(V)
-    b = w.x.petsc_vec
-    b.zeroEntries()
-    op.add_residual(b)
-    return b.copy()
-
-
 @pytest.mark.parametrize("integration", ["area", "collocation"])
 def test_derivatives_match_finite_differences(integration):
     comm = MPI.COMM_WORLD
-    _, V, u, op = _setup(comm, integration)
+    _, _, u, op = _setup(comm, integration)
     assert op.energy() > 0.0
-    x = V.tabulate_dof_coordinates()
-    v = dolfinx.fem.Function(V)
-    v.x.array[:] = np.cos(np.array([1.3, 2.9, 0.7]) * x[:, [1, 2, 0]] + 0.2).ravel()
-    u0 = u.x.array.copy()
-
-    def at(t):
-        u.x.array[:] = u0 + t * v.x.array
-        op.update()
-
-    h = 1e-6
-    at(h)
-    e_plus, r_plus = op.energy(), _residual(op, V)
-    at(-h)
-    e_minus, r_minus = op.energy(), _residual(op, V)
-    at(0.0)
-    r0 = _residual(op, V)
-    slope = r0.dot(v.x.petsc_vec)
-    assert abs((e_plus - e_minus) / (2 * h) - slope) <= 1e-6 * abs(slope)
-
-    a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
-    A = op.create_matrix(a)
-    A.zeroEntries()
-    op.add_jacobian(A)
-    assert A.getInfo()["mallocs"] == 0
-    Hv = A.createVecLeft()
-    A.mult(v.x.petsc_vec, Hv)
-    fd = r_plus.copy()
-    fd.axpy(-1.0, r_minus)
-    fd.scale(1.0 / (2 * h))
-    fd.axpy(-1.0, Hv)
-    assert fd.norm() <= 1e-6 * Hv.norm()
-    A.destroy()
+    assert_operator_derivatives(op, u, h=1e-6, rtol=1e-6)
 
 
 def _dense(comm, rows, cols, vals, n) -> np.ndarray:
@@ -203,9 +166,7 @@ def test_pattern_without_dirichlet_couplings():
         )
     ]
     op.set_bcs(bcs)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
+    psi, _ = neo_hookean(u)
     a = dolfinx.fem.form(ufl.derivative(ufl.derivative(psi * ufl.dx, u), u))
     n = 3 * op.num_vertices
     matrices, dense, factor_entries = [], [], []
@@ -447,9 +408,9 @@ def test_same_answer_on_one_process(integration):
     _, V, _, op = _setup(comm, integration)
     _, Vs, _, ops = _setup(MPI.COMM_SELF, integration)
     assert np.isclose(op.energy(), ops.energy(), rtol=1e-12, atol=0.0)
-    serial = _per_point(Vs, _residual(ops, Vs))
+    serial = _per_point(Vs, operator_residual(ops, Vs))
     merged: dict = {}
-    for part in comm.allgather(_per_point(V, _residual(op, V))):
+    for part in comm.allgather(_per_point(V, operator_residual(op, V))):
         for p, val in part.items():
             merged[p] = merged.get(p, 0.0) + val
     assert merged.keys() == serial.keys()
@@ -478,10 +439,11 @@ def test_max_penetration_of_sunk_block(integration):
     which the upper box covers; the upper box's depth is at most the distance to its bottom
     face. So the deepest point reached is exactly 0.2 (also for the collocation nodes: the
     upper box has a bottom vertex above the middle)."""
-    xa, ca = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    xb, cb = _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0))
-    cells = np.vstack((ca, cb + xa.shape[0]))
-    mesh = create_tetrahedral_mesh(MPI.COMM_WORLD, cells, np.vstack((xa, xb)))
+    mesh = merged_mesh(
+        MPI.COMM_WORLD,
+        _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0)),
+    )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     depth = fm.material_depth(mesh)
@@ -576,9 +538,11 @@ def test_vertex_penetration(integration):
     # (0.455, 0.51) lies, 0.2 down, in the lower box's cube column [1/3, 2/3]^2, whose top
     # layer has depth 0 above and 1/3 below (the distance of (1/3 or 2/3, 1/3 or 2/3, 2/3) to
     # the unit cube's faces): there the P1 depth is 1 - z, 0.2 exactly
-    xa, ca = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    xb, cb = _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0))
-    mesh = create_tetrahedral_mesh(comm, np.vstack((ca, cb + xa.shape[0])), np.vstack((xa, xb)))
+    mesh = merged_mesh(
+        comm,
+        _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0)),
+    )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     op = ContactOperator(u, fm.material_depth(mesh), penalty=1.0, integration=integration)

@@ -21,10 +21,11 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 import ufl
+from conftest import clamped_and_moved, min_det_F, neo_hookean_residual
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
+from fenics_matdepth._compat import create_tetrahedral_mesh
 
 LENGTH, WIDTH, THICKNESS = 4.0, 0.8, 0.2
 CELLS = (40, 4, 2)  # 0.1 along the strip and through the thickness, 0.2 across
@@ -59,20 +60,12 @@ def test_strip_folds_onto_itself():
     h = LENGTH / CELLS[0]
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
-    residual = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    residual, psi = neo_hookean_residual(u)
 
-    clamp = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], 0.0))
-    end = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], LENGTH))
-    g = dolfinx.fem.Function(V)
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, clamp)
-        ),
-        dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, 2, end)),
-    ]
+    bcs, g = clamped_and_moved(
+        V, lambda x: np.isclose(x[0], 0.0), lambda x: np.isclose(x[0], LENGTH)
+    )
+    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
     moduli = fm.materials.small_strain_moduli(fm.materials.neo_hookean, mu=mu, kappa=kappa)
     penalty = fm.propose_penalty(mesh, moduli.stiffest, factor=30.0)
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=penalty)
@@ -89,10 +82,4 @@ def test_strip_folds_onto_itself():
     scale = comm.allreduce(forces.max() if forces.size else 0.0, op=MPI.MAX)
     assert np.abs(final["force_resultant"]).max() <= 1e-8 * scale
 
-    DG0 = dolfinx.fem.functionspace(mesh, ("DG", 0))
-    det = dolfinx.fem.Function(DG0)
-    det.interpolate(
-        dolfinx.fem.Expression(ufl.det(ufl.Identity(3) + ufl.grad(u)), interpolation_points(DG0))
-    )
-    local_min = det.x.array.min() if det.x.array.size else np.inf
-    assert comm.allreduce(local_min, op=MPI.MIN) > 0.0
+    assert min_det_F(u) > 0.0

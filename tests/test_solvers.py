@@ -20,6 +20,7 @@ import dolfinx
 import numpy as np
 import pytest
 import ufl
+from conftest import clamped_and_moved, merged_mesh, neo_hookean, neo_hookean_residual
 from test_operator import _box_tets
 
 import fenics_matdepth as fm
@@ -37,31 +38,23 @@ def _stacked_blocks(comm, gap: float = 0.0, sink: float = 0.0, mesh=None):
     """A 1 x 1 x 0.5 block and a smaller block above it (bottom at z = 0.5 + gap - sink);
     a new mesh unless ``mesh`` (made by this function) is given."""
     if mesh is None:
-        xa, ca = _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
-        xb, cb = _box_tets(3, (0.25, 0.2, 0.5 + gap - sink), (0.5, 0.55, 0.4))
-        cells = np.vstack((ca, cb + xa.shape[0]))
-        mesh = create_tetrahedral_mesh(comm, cells, np.vstack((xa, xb)))
+        mesh = merged_mesh(
+            comm,
+            _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
+            _box_tets(3, (0.25, 0.2, 0.5 + gap - sink), (0.5, 0.55, 0.4)),
+        )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E, NU)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
-    residual = ufl.inner(ufl.diff(psi, F_def), ufl.grad(ufl.TestFunction(V))) * ufl.dx
+    residual, psi = neo_hookean_residual(u, E, NU)
     return mesh, V, u, residual, psi * ufl.dx
 
 
 def _press_bcs(mesh, V, top_z: float, push: float):
     """Lower block's bottom clamped; the upper block's top face moved by ``push`` along z."""
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], top_z))
-    g = dolfinx.fem.Function(V)
+    bcs, g = clamped_and_moved(
+        V, lambda x: np.isclose(x[2], 0.0), lambda x: np.isclose(x[2], top_z)
+    )
     g.x.array.reshape(-1, 3)[:, 2] = push
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, bottom)
-        ),
-        dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, 2, top)),
-    ]
     return bcs, g
 
 
@@ -467,9 +460,7 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     a, well, pin = 0.1, 1000.0, 10.0
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E, NU)
-    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    psi = fm.materials.neo_hookean(F_def, mu, kappa)
+    psi, _ = neo_hookean(u, E, NU)
     psi += well * (u[0] ** 2 - a**2) ** 2 + pin * (u[1] ** 2 + u[2] ** 2)
     energy = psi * ufl.dx
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))

@@ -22,11 +22,18 @@ import dolfinx
 import numpy as np
 import pytest
 import ufl
-from test_operator import _box_tets, _residual
+from conftest import (
+    assert_operator_derivatives,
+    clamped_and_moved,
+    merged_mesh,
+    min_det_F,
+    neo_hookean,
+)
+from test_operator import _box_tets
 from test_self_contact import LENGTH, THICKNESS, WIDTH, _end_motion
 
 import fenics_matdepth as fm
-from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
+from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact.kernels import collocation_energy, pair_energy
 from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_into
 from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth
@@ -196,13 +203,7 @@ def test_split_collocation_depth_is_four_centroid_depths_times_min_barycentric()
 
 def _stack(comm, *boxes) -> dolfinx.mesh.Mesh:
     """One mesh of several structured boxes ``(cells, origin, size)``."""
-    xs, cs, offset = [], [], 0
-    for n, origin, size in boxes:
-        x, c = _box_tets(n, origin, size)
-        xs.append(x)
-        cs.append(c + offset)
-        offset += x.shape[0]
-    return create_tetrahedral_mesh(comm, np.vstack(cs), np.vstack(xs))
+    return merged_mesh(comm, *(_box_tets(n, origin, size) for n, origin, size in boxes))
 
 
 def test_deficiency_counts_and_warning():
@@ -270,37 +271,7 @@ def test_operator_derivatives_with_split_tetrahedra(integration):
         )  # fmt: skip
     assert op.num_split_tets == mesh.topology.index_map(3).size_global
     assert op.energy() > 0.0
-    v = dolfinx.fem.Function(V)
-    v.x.array[:] = np.cos(np.array([1.3, 2.9, 0.7]) * x[:, [1, 2, 0]] + 0.2).ravel()
-    u0 = u.x.array.copy()
-
-    def at(t):
-        u.x.array[:] = u0 + t * v.x.array
-        op.update()
-
-    h = 1e-6
-    at(h)
-    e_plus, r_plus = op.energy(), _residual(op, V)
-    at(-h)
-    e_minus, r_minus = op.energy(), _residual(op, V)
-    at(0.0)
-    r0 = _residual(op, V)
-    slope = r0.dot(v.x.petsc_vec)
-    assert abs((e_plus - e_minus) / (2 * h) - slope) <= 1e-6 * abs(slope)
-
-    a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
-    A = op.create_matrix(a)
-    A.zeroEntries()
-    op.add_jacobian(A)
-    assert A.getInfo()["mallocs"] == 0
-    Hv = A.createVecLeft()
-    A.mult(v.x.petsc_vec, Hv)
-    fd = r_plus.copy()
-    fd.axpy(-1.0, r_minus)
-    fd.scale(1.0 / (2 * h))
-    fd.axpy(-1.0, Hv)
-    assert fd.norm() <= 1e-6 * Hv.norm()
-    A.destroy()
+    assert_operator_derivatives(op, u, h=1e-6, rtol=1e-6)
 
 
 # ------------------------------------------------------------------------------------------
@@ -312,12 +283,6 @@ PRESSURE = 0.01
 PENALTY = 100.0  # = 10 E / PLATE
 
 
-def _neo_hookean_energy(u):
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
-    F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    return fm.materials.neo_hookean(F, mu, kappa) * ufl.dx
-
-
 def _plane_bc(V, axis: int, value: float, component: int) -> dolfinx.fem.DirichletBC:
     mesh = V.mesh
     facets = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[axis], value))
@@ -327,6 +292,18 @@ def _plane_bc(V, axis: int, value: float, component: int) -> dolfinx.fem.Dirichl
 
 def _upper_body(op: ContactOperator) -> int:
     return int(op.body_of_vertex[np.argmax(op.surface.gathered()["X"][:, 2])])
+
+
+def _sink_upper_body(op: ContactOperator, u: dolfinx.fem.Function, sink: float) -> int:
+    """Move the upper body of ``op``'s mesh down by ``sink`` (in ``u``); returns its number."""
+    upper = _upper_body(op)
+    imap = u.function_space.dofmap.index_map
+    n_owned = imap.size_local
+    glob = imap.local_to_global(np.arange(n_owned, dtype=np.int32))
+    is_upper = op.body_of_vertex[glob] == upper
+    u.x.array[: 3 * n_owned].reshape(-1, 3)[is_upper, 2] = -sink
+    u.x.scatter_forward()
+    return upper
 
 
 def _press_plate(lower_layers: int, split: bool) -> dict:
@@ -349,18 +326,13 @@ def _press_plate(lower_layers: int, split: bool) -> dict:
     ds = ufl.Measure(
         "ds", domain=mesh, subdomain_data=dolfinx.mesh.meshtags(mesh, 2, top, np.ones_like(top))
     )
-    energy = _neo_hookean_energy(u) + PRESSURE * u[2] * ds(1)
+    energy = neo_hookean(u)[0] * ufl.dx + PRESSURE * u[2] * ds(1)
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
     bcs = [_plane_bc(V, 0, 0.0, 0), _plane_bc(V, 1, 0.0, 1), _plane_bc(V, 2, 0.0, 2)]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DepthDeficiencyWarning)
         op = ContactOperator(u, fm.material_depth(mesh), penalty=PENALTY, split_deficient=split)
-    upper = _upper_body(op)
-    n_owned = V.dofmap.index_map.size_local
-    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
-    is_upper = op.body_of_vertex[glob] == upper
-    u.x.array[: 3 * n_owned].reshape(-1, 3)[is_upper, 2] = -PRESSURE / (2.0 * PENALTY)
-    u.x.scatter_forward()
+    upper = _sink_upper_body(op, u, PRESSURE / (2.0 * PENALTY))
     op.update()
     out = {"initial_force": op.force_resultants()[upper, 2], "diagnostics": op.diagnostics()}
     problem = fm.ContactProblem(
@@ -434,17 +406,11 @@ def test_strip_one_element_thick_folds_onto_itself():
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
-    energy = _neo_hookean_energy(u)
+    energy = neo_hookean(u)[0] * ufl.dx
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
-    clamp = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], 0.0))
-    end = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[0], length))
-    g = dolfinx.fem.Function(V)
-    bcs = [
-        dolfinx.fem.dirichletbc(
-            dolfinx.fem.Function(V), dolfinx.fem.locate_dofs_topological(V, 2, clamp)
-        ),
-        dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, 2, end)),
-    ]
+    bcs, g = clamped_and_moved(
+        V, lambda x: np.isclose(x[0], 0.0), lambda x: np.isclose(x[0], length)
+    )
     mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(1.0, 0.3)
     moduli = fm.materials.small_strain_moduli(fm.materials.neo_hookean, mu=mu, kappa=kappa)
     penalty = fm.propose_penalty(mesh, moduli.stiffest, factor=30.0)
@@ -464,13 +430,7 @@ def test_strip_one_element_thick_folds_onto_itself():
     )
     assert final["active_pairs"] > 0, "the strip did not reach itself"
     assert final["max_penetration"] < 0.2 * thickness
-    DG0 = dolfinx.fem.functionspace(mesh, ("DG", 0))
-    det = dolfinx.fem.Function(DG0)
-    det.interpolate(
-        dolfinx.fem.Expression(ufl.det(ufl.Identity(3) + ufl.grad(u)), interpolation_points(DG0))
-    )
-    local_min = det.x.array.min() if det.x.array.size else np.inf
-    assert comm.allreduce(local_min, op=MPI.MIN) > 0.0
+    assert min_det_F(u) > 0.0
 
 
 # ------------------------------------------------------------------------------------------
@@ -512,7 +472,7 @@ def _press_block(split: bool, penalty: float = 2.0) -> np.ndarray:
     ds = ufl.Measure(
         "ds", domain=mesh, subdomain_data=dolfinx.mesh.meshtags(mesh, 2, top, np.ones_like(top))
     )
-    energy = _neo_hookean_energy(u) + PRESSURE * u[2] * ds(1)
+    energy = neo_hookean(u)[0] * ufl.dx + PRESSURE * u[2] * ds(1)
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
     zero = PETSc.ScalarType(0.0)
     bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
@@ -525,12 +485,7 @@ def _press_block(split: bool, penalty: float = 2.0) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DepthDeficiencyWarning)
         op = ContactOperator(u, fm.material_depth(mesh), penalty=penalty, split_deficient=split)
-    upper_body = _upper_body(op)
-    n_owned = V.dofmap.index_map.size_local
-    glob = V.dofmap.index_map.local_to_global(np.arange(n_owned, dtype=np.int32))
-    is_upper = op.body_of_vertex[glob] == upper_body
-    u.x.array[: 3 * n_owned].reshape(-1, 3)[is_upper, 2] = -PRESSURE / (2.0 * penalty)
-    u.x.scatter_forward()
+    upper_body = _sink_upper_body(op, u, PRESSURE / (2.0 * penalty))
     problem = fm.ContactProblem(
         residual, u, op, bcs=bcs, energy=energy, petsc_options=NEWTON_OPTIONS
     )

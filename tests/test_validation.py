@@ -18,7 +18,8 @@ import dolfinx
 import numpy as np
 import pytest
 import ufl
-from test_operator import _box_tets, _residual
+from conftest import operator_residual
+from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
@@ -470,7 +471,7 @@ def test_patch_contact_jacobian_matches_central_differences():
     def residual_at(t):
         u.x.array[:] = u0 + t * v.x.array
         contact.update()
-        return _residual(contact, V)
+        return operator_residual(contact, V)
 
     h = 1e-2  # displacements of 1e-5 (elements of 0.125 to 0.143)
     fd = residual_at(h)

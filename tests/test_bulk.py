@@ -1,0 +1,104 @@
+"""The bulk Jacobian through DOLFINx's CSR matrix (fenics_matdepth/_bulk.py) against
+``dolfinx.fem.petsc.assemble_matrix`` of the same form and conditions; its reuse of the last
+values while nothing the form reads has changed."""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dolfinx
+import dolfinx.fem.petsc
+import numpy as np
+import ufl
+from conftest import clamped_and_moved, dense_matrix, neo_hookean
+from test_operator import _box_tets
+
+from fenics_matdepth._bulk import BulkMatrix, csr_entries
+from fenics_matdepth._compat import create_tetrahedral_mesh
+from fenics_matdepth.contact.assembly import global_dirichlet_dofs
+
+#: Sums in another order than DOLFINx's PETSc assembly: relative to the largest entry.
+RTOL = 1e-13
+
+
+def _setup():
+    """A neo-Hookean Jacobian at a non-zero displacement, the bottom and the top held."""
+    comm = MPI.COMM_WORLD
+    X, cells = _box_tets((5, 3, 2), (0.0, 0.0, 0.0), (1.0, 0.6, 0.4))
+    mesh = create_tetrahedral_mesh(comm, cells, X)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    u.interpolate(lambda x: np.vstack((0.05 * x[2] ** 2, 0.02 * x[0] * x[1], -0.03 * x[0])))
+    psi, _ = neo_hookean(u, 3.0, 0.3)
+    a = dolfinx.fem.form(ufl.derivative(ufl.derivative(psi * ufl.dx, u), u))
+    bcs, _ = clamped_and_moved(V, lambda x: np.isclose(x[2], 0.0), lambda x: np.isclose(x[2], 0.4))
+    return u, a, bcs
+
+
+def _reference(a, bcs) -> np.ndarray:
+    A = dolfinx.fem.petsc.assemble_matrix(a, bcs)
+    A.assemble()
+    dense = dense_matrix(A)
+    A.destroy()
+    return dense
+
+
+def _bulk_into_fresh(bulk: BulkMatrix, a, times: int = 1) -> np.ndarray:
+    A = dolfinx.fem.petsc.create_matrix(a)
+    A.zeroEntries()
+    for _ in range(times):
+        bulk.add_to(A)
+    A.assemble()
+    dense = dense_matrix(A)
+    A.destroy()
+    return dense
+
+
+def test_matches_petsc_assembly():
+    """Entries, Dirichlet rows and columns (1 on the diagonal, 0 elsewhere) as PETSc's
+    assembly gives them."""
+    u, a, bcs = _setup()
+    dirichlet = global_dirichlet_dofs(u.function_space.mesh.comm, u.function_space, bcs)
+    assert dirichlet.size > 0
+    reference = _reference(a, bcs)
+    bulk = BulkMatrix(a, bcs, dirichlet)
+    ours = _bulk_into_fresh(bulk, a)
+    assert np.abs(ours - reference).max() <= RTOL * np.abs(reference).max()
+    assert np.array_equal(np.diag(ours)[dirichlet], np.ones(dirichlet.size))
+    assert bulk.reused == 0
+
+
+def test_reuses_values_until_an_input_changes():
+    """A second addition with nothing changed reuses the values (the matrix doubles); after
+    ``u`` changes, the form is assembled again, matching PETSc's assembly at the new ``u``."""
+    u, a, bcs = _setup()
+    dirichlet = global_dirichlet_dofs(u.function_space.mesh.comm, u.function_space, bcs)
+    bulk = BulkMatrix(a, bcs, dirichlet)
+    reference = _reference(a, bcs)
+    twice = _bulk_into_fresh(bulk, a, times=2)
+    assert bulk.reused == 1
+    assert np.abs(twice - 2.0 * reference).max() <= 2.0 * RTOL * np.abs(reference).max()
+    u.x.array[:] *= 1.5
+    moved = _reference(a, bcs)
+    assert np.abs(moved - reference).max() > 1e-6 * np.abs(reference).max()
+    ours = _bulk_into_fresh(bulk, a)
+    assert bulk.reused == 1
+    assert np.abs(ours - moved).max() <= RTOL * np.abs(moved).max()
+
+
+def test_csr_entries_are_the_owned_rows():
+    """``csr_entries`` of an assembled DOLFINx matrix: (row, col) entries of the owned rows,
+    sorted by row, whose values are the PETSc assembly's (no conditions)."""
+    u, a, _ = _setup()
+    csr = dolfinx.fem.assemble_matrix(a)
+    csr.scatter_reverse()
+    data_index, row, col = csr_entries(csr)
+    assert np.all(np.diff(row) >= 0)
+    bs = csr.block_size[0]
+    r0 = bs * csr.index_map(0).local_range[0]
+    n = 3 * u.function_space.dofmap.index_map.size_global
+    local = np.zeros((n, n))
+    np.add.at(local, (row + r0, col), csr.data[data_index])
+    dense = u.function_space.mesh.comm.allreduce(local)
+    reference = _reference(a, [])
+    assert np.abs(dense - reference).max() <= RTOL * np.abs(reference).max()
