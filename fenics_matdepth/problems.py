@@ -96,28 +96,6 @@ def _check_problem_inputs(u, contact, bcs) -> None:
             )
 
 
-class _BackOff:
-    """After a failure, the next 1, 2, 4, ... chances are skipped (doubling with each failure
-    in a row), until a success."""
-
-    def __init__(self):
-        self._skip = self._length = 0
-
-    def take(self) -> bool:
-        """Whether this chance may be taken (one chance used either way)."""
-        allowed = self._skip == 0
-        self._skip = max(self._skip - 1, 0)
-        return allowed
-
-    def record(self, failed: bool, succeeded: bool) -> None:
-        """The outcome of a chance taken: a failure lengthens the skip, a success ends it."""
-        if failed:
-            self._length = max(1, 2 * self._length)
-            self._skip = self._length
-        elif succeeded:
-            self._length = 0
-
-
 class _Releasable:
     """``destroy()`` at the end of a ``with`` block, and when Python frees the object. A
     problem is freed only once ``destroy()`` has broken its solver's reference cycle (or if its

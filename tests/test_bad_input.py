@@ -15,10 +15,10 @@ import dolfinx
 import numpy as np
 import pytest
 from conftest import neo_hookean_residual
-from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
+from fenics_matdepth.meshing import box_tetrahedra
 
 COMM = MPI.COMM_WORLD
 LAYOUTS = ["partitioned", "rank0"]
@@ -31,7 +31,7 @@ def _mesh(cells, x, layout: str = "partitioned", degree: int = 1) -> dolfinx.mes
 
 
 def _cube(layout: str = "partitioned", n: int = 2, origin=(0.0, 0.0, 0.0), size=1.0):
-    X, cells = _box_tets(n, origin, (size, size, size))
+    X, cells = box_tetrahedra(n, origin, (size, size, size))
     return _mesh(cells, X, layout)
 
 
@@ -95,7 +95,7 @@ def test_curved_p2_geometry(layout):
 @pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_non_finite_coordinates(layout, bad):
-    X, cells = _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     X[13] = [0.5, bad, 0.5]  # the centre vertex
     mesh = _mesh(cells, X, layout)
     with pytest.raises(ValueError, match="non-finite vertex coordinates"):
@@ -104,7 +104,7 @@ def test_non_finite_coordinates(layout, bad):
 
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_zero_volume_tetrahedron(layout):
-    X, cells = _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     flat = np.array([[3.0, 0, 0], [4, 0, 0], [3, 1, 0], [4, 1, 0]])  # four coplanar points
     cells = np.vstack((cells, X.shape[0] + np.arange(4)[None, :]))
     mesh = _mesh(cells, np.vstack((X, flat)), layout)
@@ -115,7 +115,7 @@ def test_zero_volume_tetrahedron(layout):
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_duplicated_tetrahedron(layout):
     """A cell given twice: its faces are shared by three cells."""
-    X, cells = _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     cells = np.vstack((cells, cells[7:8]))
     mesh = _mesh(cells, X, layout)
     with pytest.raises(ValueError, match="shared by more than two tetrahedra"):
@@ -126,7 +126,7 @@ def test_duplicated_tetrahedron(layout):
 def test_inverted_tetrahedra(layout):
     """The centre vertex of a 2 x 2 x 2 box moved out through the top: the tetrahedra around
     it fold over their neighbours (negative volume relative to the rest of the mesh)."""
-    X, cells = _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     X[13] = [0.5, 0.5, 1.3]
     mesh = _mesh(cells, X, layout)
     with pytest.raises(ValueError, match="inverted, folded-over element"):
@@ -139,7 +139,8 @@ def test_non_manifold_boundary(layout, shared):
     """Two cubes that share only an edge, or only a vertex."""
     offset = (1.0, 1.0, 0.0) if shared == "edge" else (1.0, 1.0, 1.0)
     X, cells = _merged(
-        _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), _box_tets(2, offset, (1.0, 1.0, 1.0))
+        box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(2, offset, (1.0, 1.0, 1.0)),
     )
     mesh = _mesh(cells, X, layout)
     with pytest.raises(ValueError, match="non-manifold"):
@@ -168,7 +169,8 @@ def test_single_tetrahedron(layout):
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_bodies_overlapping_in_the_reference_configuration(layout):
     X, cells = _separate(
-        _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), _box_tets(3, (0.3, 0.2, 0.8), (1, 1, 1))
+        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(3, (0.3, 0.2, 0.8), (1, 1, 1)),
     )
     mesh = _mesh(cells, X, layout)
     with pytest.raises(ValueError, match="overlap in the reference configuration"):
@@ -182,7 +184,8 @@ def test_coincident_unglued_surfaces_are_bodies_in_contact(layout):
     """Two boxes whose faces coincide without sharing vertices are two bodies touching: accepted,
     zero contact energy at rest, contact force as soon as one presses on the other."""
     X, cells = _separate(
-        _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), _box_tets(3, (0.0, 0.0, 1.0), (1, 1, 1))
+        box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(3, (0.0, 0.0, 1.0), (1, 1, 1)),
     )
     mesh = _mesh(cells, X, layout)
     contact = _contact(mesh)

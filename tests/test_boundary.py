@@ -10,7 +10,6 @@ import dolfinx
 import numpy as np
 import pytest
 from conftest import merged_mesh
-from test_operator import _box_tets
 
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.boundary import (
@@ -21,6 +20,7 @@ from fenics_matdepth.boundary import (
     owned_exterior_facets,
     p1_dof_coordinates,
 )
+from fenics_matdepth.meshing import box_tetrahedra
 
 #: The box [0, 2] x [0, 1] x [0, 0.5] in 4 x 2 x 2 cubes of 6 tetrahedra each: every cube face
 #: on the boundary is two triangles.
@@ -39,7 +39,7 @@ def box(request) -> dolfinx.mesh.Mesh:
         return dolfinx.mesh.create_box(
             comm, [LO, HI], list(CELLS), dolfinx.mesh.CellType.tetrahedron
         )
-    return create_tetrahedral_mesh(comm, *_box_tets(CELLS, LO, HI - LO)[::-1])
+    return create_tetrahedral_mesh(comm, *box_tetrahedra(CELLS, LO, HI - LO)[::-1])
 
 
 def _areas(x: np.ndarray) -> np.ndarray:
@@ -162,8 +162,8 @@ def test_two_touching_boxes_keep_their_faces():
     comm = MPI.COMM_WORLD
     mesh = merged_mesh(
         comm,
-        _box_tets(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
-        _box_tets(2, (0.0, 0.0, 1.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(2, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(2, (0.0, 0.0, 1.0), (1.0, 1.0, 1.0)),
     )
     x = boundary_triangles(mesh)
     assert x.shape[0] == 2 * 6 * 4 * 2

@@ -11,11 +11,11 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 from conftest import clamped_and_moved, dense_matrix, neo_hookean
-from test_operator import _box_tets
 
 from fenics_matdepth._bulk import BulkMatrix, csr_entries
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact.assembly import global_dirichlet_dofs
+from fenics_matdepth.meshing import box_tetrahedra
 
 #: Sums in another order than DOLFINx's PETSc assembly: relative to the largest entry.
 RTOL = 1e-13
@@ -24,7 +24,7 @@ RTOL = 1e-13
 def _setup():
     """A neo-Hookean Jacobian at a non-zero displacement, the bottom and the top held."""
     comm = MPI.COMM_WORLD
-    X, cells = _box_tets((5, 3, 2), (0.0, 0.0, 0.0), (1.0, 0.6, 0.4))
+    X, cells = box_tetrahedra((5, 3, 2), (0.0, 0.0, 0.0), (1.0, 0.6, 0.4))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)

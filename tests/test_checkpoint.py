@@ -11,11 +11,11 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 import pytest
-from test_operator import _box_tets
 
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.boundary import p1_dof_coordinates
 from fenics_matdepth.checkpoint import FORMAT, Checkpoint
+from fenics_matdepth.meshing import box_tetrahedra
 
 
 def _field(X: np.ndarray) -> np.ndarray:
@@ -46,7 +46,7 @@ def test_file_rows_are_input_vertices(tmp_path_factory):
     coordinates, equal bit for bit); a scalar field has one column."""
     comm = MPI.COMM_WORLD
     folder = _folder(tmp_path_factory, "rows")
-    X, cells = _box_tets((3, 2, 2), (0.0, 0.0, 0.0), (1.5, 1.0, 1.0))
+    X, cells = box_tetrahedra((3, 2, 2), (0.0, 0.0, 0.0), (1.5, 1.0, 1.0))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     S = dolfinx.fem.functionspace(mesh, ("Lagrange", 1))
@@ -78,7 +78,7 @@ def test_resume_on_another_partition(tmp_path_factory, writer):
     included) is the field at that dof's vertex, bit for bit, and the scalars come back."""
     comm = MPI.COMM_WORLD
     folder = _folder(tmp_path_factory, f"resume_{writer}")
-    X, cells = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     meshes = _layouts(comm, cells, X)
     V = dolfinx.fem.functionspace(meshes[writer], ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -96,7 +96,7 @@ def test_resume_on_another_partition(tmp_path_factory, writer):
 def test_refuses_a_space_it_cannot_store(tmp_path_factory):
     """P2 fields are not vertex fields: refused when the checkpoint is made."""
     comm = MPI.COMM_WORLD
-    X, cells = _box_tets(1, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(1, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     P2 = dolfinx.fem.functionspace(mesh, ("Lagrange", 2, (3,)))
     with pytest.raises(ValueError, match="P1 fields"):

@@ -22,12 +22,12 @@ import numpy as np
 import pytest
 import ufl
 from conftest import clamped_and_moved, neo_hookean_residual
-from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.boundary import p1_dof_coordinates
 from fenics_matdepth.contact.operator import ContactOperator
+from fenics_matdepth.meshing import box_tetrahedra
 from fenics_matdepth.problems import ContactProblem
 
 #: Agreement asked of a partitioned run with the serial one (relative to the largest value).
@@ -39,8 +39,8 @@ def _pressed_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     surfaces at z = 0.5). Cells of the lower block go to ranks 0 / 1 by x, of the upper block
     to ranks 2 / 3 by y (modulo the number of ranks): contact between triangles and
     tetrahedra of different ranks, and partition boundaries inside each body."""
-    xa, ca = _box_tets((4, 4, 2), (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
-    xb, cb = _box_tets((3, 4, 3), (0.2, 0.15, 0.5), (0.6, 0.7, 0.5))
+    xa, ca = box_tetrahedra((4, 4, 2), (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
+    xb, cb = box_tetrahedra((3, 4, 3), (0.2, 0.15, 0.5), (0.6, 0.7, 0.5))
     X = np.vstack((xa, xb))
     cells = np.vstack((ca, cb + xa.shape[0]))
     c = X[cells].mean(axis=1)
@@ -52,7 +52,7 @@ def _pressed_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _strip() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A strip 2 x 0.4 x 0.2 (one body), halves x < 1 and x > 1 on ranks 0 and 1 (and 2 / 3
     by y, modulo the number of ranks)."""
-    X, cells = _box_tets((10, 2, 2), (0.0, 0.0, 0.0), (2.0, 0.4, 0.2))
+    X, cells = box_tetrahedra((10, 2, 2), (0.0, 0.0, 0.0), (2.0, 0.4, 0.2))
     c = X[cells].mean(axis=1)
     rank = (c[:, 0] > 1.0).astype(int) + 2 * (c[:, 1] > 0.2)
     return X, cells, rank

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import ufl
 from conftest import merged_mesh, min_det_F, neo_hookean_residual
-from test_operator import _box_tets
 from test_solvers import _touching_problem
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.checkpoint import Checkpoint
+from fenics_matdepth.meshing import box_tetrahedra
 
 
 def _soft_block_press(comm, solver: str, mesh=None):
@@ -27,8 +27,8 @@ def _soft_block_press(comm, solver: str, mesh=None):
     if mesh is None:
         mesh = merged_mesh(
             comm,
-            _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
-            _box_tets(10, (0.25, 0.25, 0.5), (0.5, 0.5, 0.5)),
+            box_tetrahedra(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
+            box_tetrahedra(10, (0.25, 0.25, 0.5), (0.5, 0.5, 0.5)),
         )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -101,7 +101,7 @@ def _indented_block(comm, solver: str, depth: float, line_search: str = "bt"):
     """A block (1 x 1 x 0.5, 6 x 6 x 4 cells, bottom clamped) whose top is indented by
     ``depth`` on a disc of radius 0.2: at 0.4 (80 % of the thickness) the first Newton step,
     the linearised response, inverts elements under the disc."""
-    X, cells = _box_tets((6, 6, 4), (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
+    X, cells = box_tetrahedra((6, 6, 4), (0.0, 0.0, 0.0), (1.0, 1.0, 0.5))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -273,7 +273,7 @@ def test_checkpoint_round_trip_and_mesh_check(tmp_path_factory):
     """Saved arrays come back bit for bit; another mesh is refused with a clear error."""
     comm = MPI.COMM_WORLD
     folder = Path(comm.bcast(str(tmp_path_factory.mktemp("ckpt")) if comm.rank == 0 else None))
-    X, cells = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    X, cells = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)

@@ -16,38 +16,15 @@ import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact import assembly
 from fenics_matdepth.contact.operator import ContactOperator
-
-
-def _box_tets(n, origin, size) -> tuple[np.ndarray, np.ndarray]:
-    """Structured tetrahedral mesh of a box: each of the n^3 (or nx * ny * nz, for a tuple n)
-    cubes split into 6 (Kuhn) tets."""
-    nx, ny, nz = (n, n, n) if np.isscalar(n) else n
-    g = [np.linspace(0.0, 1.0, m + 1) for m in (nx, ny, nz)]
-    X = np.stack(np.meshgrid(*g, indexing="ij"), axis=-1).reshape(-1, 3)
-    X = np.asarray(origin) + X * np.asarray(size)
-    idx = np.arange(X.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    kuhn = np.array(
-        [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    )
-    # the 8 corners of every cube, in the order (a, b, d) -> 4a + 2b + d
-    corners = np.stack(
-        [
-            idx[a : nx + a, b : ny + b, d : nz + d].ravel()
-            for a in (0, 1)
-            for b in (0, 1)
-            for d in (0, 1)
-        ],
-        axis=1,
-    )
-    return X, corners[:, kuhn].reshape(-1, 4).astype(np.int64)
+from fenics_matdepth.meshing import box_tetrahedra
 
 
 def _two_boxes(comm: MPI.Comm, n: int = 3) -> dolfinx.mesh.Mesh:
     """Two unit boxes in one mesh, the upper one sunk 0.2 into the lower one and shifted."""
     return merged_mesh(
         comm,
-        _box_tets(n, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
-        _box_tets(n + 1, (0.23, 0.11, 0.8), (0.9, 0.8, 1.0)),
+        box_tetrahedra(n, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(n + 1, (0.23, 0.11, 0.8), (0.9, 0.8, 1.0)),
     )
 
 
@@ -441,8 +418,8 @@ def test_max_penetration_of_sunk_block(integration):
     upper box has a bottom vertex above the middle)."""
     mesh = merged_mesh(
         MPI.COMM_WORLD,
-        _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
-        _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0)),
+        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0)),
     )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -540,8 +517,8 @@ def test_vertex_penetration(integration):
     # the unit cube's faces): there the P1 depth is 1 - z, 0.2 exactly
     mesh = merged_mesh(
         comm,
-        _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
-        _box_tets(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0)),
+        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(4, (0.23, 0.11, 1.0), (0.9, 0.8, 1.0)),
     )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -627,7 +604,7 @@ def test_diagnostics_and_unchanged_state():
 def test_propose_penalty():
     """eps = factor * modulus / h, h the median boundary edge: for a Kuhn-split box of n = 3
     cells per side every boundary triangle has two axis edges (1/3) and one diagonal."""
-    mesh = create_tetrahedral_mesh(MPI.COMM_WORLD, *_box_tets(3, (0, 0, 0), (1, 1, 1))[::-1])
+    mesh = create_tetrahedral_mesh(MPI.COMM_WORLD, *box_tetrahedra(3, (0, 0, 0), (1, 1, 1))[::-1])
     assert np.isclose(fm.propose_penalty(mesh, 2.0, factor=10.0), 10.0 * 2.0 * 3.0, rtol=1e-12)
     assert fm.propose_penalty(mesh, 2.0, factor=10.0, h=0.5) == 40.0
     with pytest.raises(ValueError, match="positive"):

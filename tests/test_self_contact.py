@@ -22,10 +22,10 @@ import dolfinx
 import numpy as np
 import ufl
 from conftest import clamped_and_moved, min_det_F, neo_hookean_residual
-from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
+from fenics_matdepth.meshing import box_tetrahedra
 
 LENGTH, WIDTH, THICKNESS = 4.0, 0.8, 0.2
 CELLS = (40, 4, 2)  # 0.1 along the strip and through the thickness, 0.2 across
@@ -55,7 +55,7 @@ def _end_motion(t: float):
 
 def test_strip_folds_onto_itself():
     comm = MPI.COMM_WORLD
-    X, cells = _box_tets(CELLS, (0.0, 0.0, 0.0), (LENGTH, WIDTH, THICKNESS))
+    X, cells = box_tetrahedra(CELLS, (0.0, 0.0, 0.0), (LENGTH, WIDTH, THICKNESS))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     h = LENGTH / CELLS[0]
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))

@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 import ufl
 from conftest import clamped_and_moved, merged_mesh, neo_hookean, neo_hookean_residual
-from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth import linear_solver, snes_callbacks, system_assembler
 from fenics_matdepth._bulk import BulkMatrix
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact import assembly
+from fenics_matdepth.meshing import box_tetrahedra
 from fenics_matdepth.problems import ContactProblem, NonlinearContactProblem
 from fenics_matdepth.results import SolveResult
 
@@ -40,8 +40,8 @@ def _stacked_blocks(comm, gap: float = 0.0, sink: float = 0.0, mesh=None):
     if mesh is None:
         mesh = merged_mesh(
             comm,
-            _box_tets(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
-            _box_tets(3, (0.25, 0.2, 0.5 + gap - sink), (0.5, 0.55, 0.4)),
+            box_tetrahedra(4, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
+            box_tetrahedra(3, (0.25, 0.2, 0.5 + gap - sink), (0.5, 0.55, 0.4)),
         )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
@@ -455,7 +455,7 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     released: on 2 ranks nothing is left in PETSc's garbage (a PC left there per shifted step
     held its factorisation, and the knee's memory grew by GBs)."""
     comm = MPI.COMM_WORLD
-    x, c = _box_tets(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    x, c = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     mesh = create_tetrahedral_mesh(comm, c, x)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)

@@ -29,7 +29,6 @@ from conftest import (
     min_det_F,
     neo_hookean,
 )
-from test_operator import _box_tets
 from test_self_contact import LENGTH, THICKNESS, WIDTH, _end_motion
 
 import fenics_matdepth as fm
@@ -39,6 +38,7 @@ from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_into
 from fenics_matdepth.contact.kernels.polygon import area_pairs_max_depth
 from fenics_matdepth.contact.operator import ContactOperator, DepthDeficiencyWarning
 from fenics_matdepth.depth import count_depth_deficient, depth_deficient_tets
+from fenics_matdepth.meshing import box_tetrahedra
 
 #: Newton tolerance as in tests/test_validation.py (contact residual rounding floor).
 NEWTON_OPTIONS = {"snes_rtol": 1e-8}
@@ -203,7 +203,7 @@ def test_split_collocation_depth_is_four_centroid_depths_times_min_barycentric()
 
 def _stack(comm, *boxes) -> dolfinx.mesh.Mesh:
     """One mesh of several structured boxes ``(cells, origin, size)``."""
-    return merged_mesh(comm, *(_box_tets(n, origin, size) for n, origin, size in boxes))
+    return merged_mesh(comm, *(box_tetrahedra(n, origin, size) for n, origin, size in boxes))
 
 
 def test_deficiency_counts_and_warning():
@@ -217,7 +217,7 @@ def test_deficiency_counts_and_warning():
     assert counts.fraction == 1.0
 
     # box: vertices on the boundary counted from the structured grid
-    X, cells = _box_tets(3, (0, 0, 0), (1, 1, 1))
+    X, cells = box_tetrahedra(3, (0, 0, 0), (1, 1, 1))
     on_boundary = np.any((np.abs(X) < 1e-12) | (np.abs(X - 1) < 1e-12), axis=1)
     expected = count_depth_deficient(cells, np.where(on_boundary, 0.0, 1.0))
     assert 0 < expected.deficient < expected.boundary_adjacent
@@ -402,7 +402,7 @@ def test_strip_one_element_thick_folds_onto_itself():
     than 0.2 of the thickness inside the strip, and no tetrahedron is inverted."""
     comm = MPI.COMM_WORLD
     length, width, thickness = LENGTH, WIDTH, THICKNESS
-    X, cells = _box_tets((40, 4, 1), (0.0, 0.0, 0.0), (length, width, thickness))
+    X, cells = box_tetrahedra((40, 4, 1), (0.0, 0.0, 0.0), (length, width, thickness))
     mesh = create_tetrahedral_mesh(comm, cells, X)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)

@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 import ufl
 from conftest import operator_residual
-from test_operator import _box_tets
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact.operator import DepthDeficiencyWarning
 from fenics_matdepth.depth import boundary_triangles, distance_to_triangles
+from fenics_matdepth.meshing import box_tetrahedra
 
 MESHES = Path(__file__).resolve().parents[1] / "meshes"
 
@@ -340,8 +340,8 @@ def _solve_patch(
     """
     comm = MPI.COMM_WORLD
     n_lower, n_upper = PATCH_LOWER_N, PATCH_UPPER_N
-    x_lower, c_lower = _box_tets(n_lower, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    x_upper, c_upper = _box_tets(n_upper, (0.0, 0.0, 1.0), (1.0, 1.0, 1.0))
+    x_lower, c_lower = box_tetrahedra(n_lower, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    x_upper, c_upper = box_tetrahedra(n_upper, (0.0, 0.0, 1.0), (1.0, 1.0, 1.0))
     mesh = create_tetrahedral_mesh(
         comm, np.vstack((c_lower, c_upper + x_lower.shape[0])), np.vstack((x_lower, x_upper))
     )
