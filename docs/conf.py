@@ -66,10 +66,7 @@ nitpick_ignore_regex = [
     ("py:.*", r"(Expr|Scalar|optional|callable|array_like|collections\.abc\..*)"),
     # private helpers (protocols, base classes) named in the public signatures
     ("py:class", r"fenics_matdepth\.[a-z_.]+\._[A-Za-z].*"),
-    ("py:class", r"_Problem"),
-    ("py:class", r"os\.PathLike"),
-    # napoleon reads the integrators' "#: density (mass / L^3): ..." attribute comment as a type
-    ("py:class", r"density|mass / L\^3"),
+    ("py:class", r"(os\.PathLike|pathlib\..*)"),
 ]
 
 # -- formulas offline: MathJax 2 from the system, copied into the site --------------------------

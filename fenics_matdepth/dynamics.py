@@ -86,7 +86,8 @@ class _Integrator:
         self.u_prev.x.array[:] = u.x.array
         self._dt = dolfinx.fem.Constant(mesh, PETSc.ScalarType(1.0))
         self.dt = dt
-        #: density (mass / L^3): a number, a Constant, a DG0 Function or any UFL expression
+        #: The density (mass / L^3), given as a number, a Constant, a DG0 Function or any UFL
+        #: expression.
         self.rho = rho
         self.dx = dx if dx is not None else ufl.dx(domain=mesh)
         #: time of the last converged state (set by :func:`~fenics_matdepth.solve_time_steps`)

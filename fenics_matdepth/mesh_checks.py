@@ -1,7 +1,7 @@
 """Checks of a mesh for material-depth contact, collective, beside the boundary extraction.
 
 Every check here looks at distributed data: each rank tests its own part and the ranks agree
-(:func:`~fenics_matdepth._mpi.collective_error`) before anything is raised, so an error is
+(``_mpi.collective_error``) before anything is raised, so an error is
 raised on every rank and no rank is left waiting in a collective call.
 
 * :func:`~fenics_matdepth.boundary.check_mesh` (in :mod:`fenics_matdepth.boundary`, which

@@ -1,7 +1,7 @@
 """The Newton-iteration callbacks of :class:`~fenics_matdepth.ContactProblem`.
 
 SNES calls them during a solve: the residual and Jacobian (through the problem's
-:class:`~fenics_matdepth.problems.SystemAssembler`), the merit function of the line search
+:class:`~fenics_matdepth.SystemAssembler`), the merit function of the line search
 (the total energy, or ``|F|^2 / 2``), the convergence test, the line-search pre-check that
 replaces a step climbing the energy by the step of a shifted Jacobian, and the start of each
 Newton iteration (the merit function's hand-over, the matrix's rebuild, whether the coming

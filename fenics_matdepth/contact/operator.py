@@ -153,8 +153,8 @@ class ContactOperator:
 
     @property
     def penalty_revision(self) -> int:
-        """How many times the penalty has changed value since the operator was built: equal
-        revisions mean the same penalty (and so the same contact stiffness at one state)."""
+        """The number of times the penalty has changed value since the operator was built. Equal
+        revisions mean the same penalty, and so the same contact stiffness at one state."""
         return self._penalty_revision
 
     @contextlib.contextmanager

@@ -165,8 +165,9 @@ def overlapping_pairs(
 ) -> np.ndarray:
     """Which (triangle, tetrahedron) pairs have overlapping boxes now (closed boxes, no margin).
 
-    The test of :meth:`AABBTree.query_boxes` with margin 0 on the same boxes, so that pairs
-    found with a margin and filtered here are exactly those a search without margin finds.
+    The test of :meth:`~fenics_matdepth.geometry.bvh.AABBTree.query_boxes` with margin 0 on
+    the same boxes, so that pairs found with a margin and filtered here are exactly those a
+    search without margin finds.
 
     Args:
         points: (nv, 3) vertex coordinates (L).
