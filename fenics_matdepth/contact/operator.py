@@ -99,6 +99,7 @@ class ContactOperator:
         if integration not in _INTEGRATIONS:
             raise ValueError(f"integration must be one of {_INTEGRATIONS}, got {integration!r}")
         self._cache: dict[str, typing.Any] = {}
+        self._penalty, self._penalty_revision = None, -1  # the setter makes this revision 0
         self.penalty = penalty
         self.u = u
         self.integration = integration
@@ -146,8 +147,8 @@ class ContactOperator:
         value = float(value)
         if not np.isfinite(value) or value <= 0.0:
             raise ValueError(f"penalty must be a positive number (pressure/length), got {value}")
-        if value != getattr(self, "_penalty", None):
-            self._penalty_revision = getattr(self, "_penalty_revision", -1) + 1
+        if value != self._penalty:
+            self._penalty_revision += 1
         self._penalty = value
         self._cache.clear()  # energies, gradients and Hessians scale with eps
 
