@@ -55,7 +55,8 @@
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
 # `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's,
-# `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see docs/measurements.md),
+# `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see
+# docs/measurements.md),
 # `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
@@ -166,7 +167,8 @@ def report(message: str) -> None:
 #   the trochlea (penetration 0.28 h at 52°) and pressed onto the femur by the ligament. The
 #   patella's lower half now sits in a 2 mm recess swept back into the femur's clearance
 #   (`patella_recess`). Leaving out the tissue between the ligament and the femur as well
-#   (the infrapatellar fat pad's place, `fat_pad_half_width`) made it worse (`docs/measurements.md`);
+#   (the infrapatellar fat pad's place, `fat_pad_half_width`) made it worse
+#   (`docs/measurements.md`);
 # - *the tissue behind the knee at x = 0*: with muscle filling the whole back of the knee,
 #   the coarse leg stopped at 135.8°. The calf tissue behind the tibial plateau, swung round
 #   the fixed axis, arrived at the back of the femoral shaft (tissue more than 30° behind the
@@ -424,8 +426,8 @@ problem = fm.ContactProblem(
 # update sets them to the peak contact pressure the solve produced. With the linear term
 # (`p g`, Lagrange multipliers; `MATDEPTH_KNEE_AL_TERM=linear`) the pressures carried from the
 # last step held faces of thigh tissue lying flat on the femur at the energy's kink, and Newton's
-# method stalled at 58° whatever the step (docs/measurements.md); the quadratic term has no kink, and
-# its pressures fall where a contact relaxes.
+# method stalled at 58° whatever the step (docs/measurements.md); the quadratic term has no
+# kink, and its pressures fall where a contact relaxes.
 
 # +
 h_boundary = stats["median_edge"]
