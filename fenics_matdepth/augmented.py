@@ -60,8 +60,8 @@ from mpi4py import MPI
 import numpy as np
 
 from fenics_matdepth.depth import boundary_triangles
-from fenics_matdepth.problems import looser_tolerances
 from fenics_matdepth.results import Solvable, SolveResult
+from fenics_matdepth.tolerances import looser_tolerances
 
 __all__ = ["AugmentedLagrangian", "RigidModeDamping", "UzawaUpdate", "damping_energy"]
 
