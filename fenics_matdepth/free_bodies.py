@@ -266,6 +266,8 @@ class FreeBodyDamping:
         bcs: its Dirichlet conditions.
         assembler: its assembler (gets the :class:`ProximalTerm`).
         enabled: False: find nothing, damp nothing.
+        decrease: the factor on k from one damped solve to the next
+            (:class:`~fenics_matdepth.RigidModeDamping`'s).
 
     Attributes:
         bodies: the free bodies found (empty when disabled).
@@ -281,8 +283,10 @@ class FreeBodyDamping:
         bcs: typing.Sequence[dolfinx.fem.DirichletBC],
         assembler: SystemAssembler,
         enabled: bool = True,
+        decrease: float = 0.1,
     ):
         self.enabled = bool(enabled)
+        self.decrease = float(decrease)
         self.contact = contact
         self.assembler = assembler
         self.bodies = find_free_bodies(contact, bcs) if self.enabled else []
@@ -372,7 +376,9 @@ class FreeBodyDamping:
             # no load on the free bodies: the first proximal motion from the penalty's scale
             k = float(self.contact.penalty) / self.h
         term = self.assembler.proximal
-        damping = RigidModeDamping(_PlainSolves(problem, plain), term.stiffness, term.anchor)
+        damping = RigidModeDamping(
+            _PlainSolves(problem, plain), term.stiffness, term.anchor, decrease=self.decrease
+        )
         damping.stiffness = k
         # damped from the start where the load would move a body by more than h; else the
         # plain solve first (RigidModeDamping's undamped_first after a converged call)

@@ -25,10 +25,10 @@ TRACTION = 0.02  # on the upper cube's top face (pressure; E = 1)
 GAP = 0.05  # between the block and the cube (about a ninth of the mean boundary edge)
 
 
-def _two_cubes(comm):
-    """A block [0, 1]^3 (3^3 cuboids) and a cube [0, 1]^2 x [1 + GAP, 2 + GAP] (2^3 cuboids)
+def _two_cubes(comm, gap=GAP):
+    """A block [0, 1]^3 (3^3 cuboids) and a cube [0, 1]^2 x [1 + gap, 2 + gap] (2^3 cuboids)
     above it."""
-    return merged_mesh(comm, box_tetrahedra(3), box_tetrahedra(2, (0.0, 0.0, 1.0 + GAP)))
+    return merged_mesh(comm, box_tetrahedra(3), box_tetrahedra(2, (0.0, 0.0, 1.0 + gap)))
 
 
 def _component_bc(V, where, component):
@@ -37,14 +37,20 @@ def _component_bc(V, where, component):
     return dolfinx.fem.dirichletbc(PETSc.ScalarType(0.0), dofs, V.sub(component))
 
 
-def _pushed_cube(comm, direction=-1.0, **problem_kwargs):
+def _clamp(V, facets):
+    dofs = dolfinx.fem.locate_dofs_topological(V, 2, facets)
+    return dolfinx.fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType), dofs, V)
+
+
+def _pushed_cube(comm, direction=-1.0, newton_solver=False, gap=GAP, **problem_kwargs):
     """The cube pushed onto (``direction`` -1) or pulled away from (+1) the block by a traction on
     its top face; the block's bottom clamped, both bodies on rollers on x = 0 and y = 0 (the
-    cube's vertical motion is held by nothing but contact). Returns (problem, u, top area)."""
-    mesh = _two_cubes(comm)
+    cube's vertical motion is held by nothing but contact). A ContactProblem, or with
+    ``newton_solver`` a NonlinearContactProblem. Returns (problem, u, top area)."""
+    mesh = _two_cubes(comm, gap)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
-    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 2.0 + GAP))
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 2.0 + gap))
     tags = dolfinx.mesh.meshtags(mesh, 2, top, np.full(top.size, 1, dtype=np.int32))
     ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
     psi, _ = neo_hookean(u)
@@ -52,13 +58,13 @@ def _pushed_cube(comm, direction=-1.0, **problem_kwargs):
     residual = ufl.derivative(energy, u, ufl.TestFunction(V))
     bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
     bcs = [
-        dolfinx.fem.dirichletbc(
-            np.zeros(3, dtype=PETSc.ScalarType), dolfinx.fem.locate_dofs_topological(V, 2, bottom), V
-        ),
+        _clamp(V, bottom),
         _component_bc(V, lambda x: np.isclose(x[0], 0.0), 0),
         _component_bc(V, lambda x: np.isclose(x[1], 0.0), 1),
     ]
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=PENALTY)
+    if newton_solver:
+        return fm.NonlinearContactProblem(residual, u, contact, bcs, **problem_kwargs), u, 1.0
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs, energy=energy, petsc_options_prefix="free_body_",
         **problem_kwargs,
@@ -76,9 +82,7 @@ def test_find_free_bodies():
     u = dolfinx.fem.Function(V)
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=PENALTY)
     bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
-    clamp = dolfinx.fem.dirichletbc(
-        np.zeros(3, dtype=PETSc.ScalarType), dolfinx.fem.locate_dofs_topological(V, 2, bottom), V
-    )
+    clamp = _clamp(V, bottom)
     corner = dolfinx.fem.locate_dofs_geometrical(
         V, lambda x: np.isclose(x[0], 0.0) & np.isclose(x[1], 0.0) & np.isclose(x[2], 2.0 + GAP)
     )
@@ -92,9 +96,7 @@ def test_find_free_bodies():
     assert free[0].vertices == 27
     assert np.allclose(free[0].centre, (0.5, 0.5, 1.5 + GAP))
     assert np.allclose(free[0].size, (1.0, 1.0, 1.0))
-    assert [(b.index, b.free_motions) for b in find_free_bodies(contact, [clamp, pin])] == [
-        (1, 3)
-    ]
+    assert [(b.index, b.free_motions) for b in find_free_bodies(contact, [clamp, pin])] == [(1, 3)]
     assert [(b.index, b.free_motions) for b in find_free_bodies(contact, [clamp, *rollers])] == [
         (1, 1)
     ]
@@ -102,8 +104,8 @@ def test_find_free_bodies():
 
 
 def test_floating_cube_pushed_by_traction():
-    """Plain defaults: the cube starts a gap above the block, with no stiffness against its vertical motion;
-    the problem damps it, and the converged result is the undamped problem's: the contact force
+    """Plain defaults: the cube starts a gap above the block, with no stiffness against its
+    vertical motion; the problem damps it, and the converged result is the undamped problem's: the contact force
     on the cube balances the traction's resultant, the damping is off, and the state equals a
     solve without damping from that state (independent: no damping, the cube already held)."""
     comm = MPI.COMM_WORLD
@@ -160,3 +162,60 @@ def test_body_never_held_is_named():
     assert "Dirichlet" in message and "Reduce the load step" not in message
     assert problem.assembler.proximal.k == 0.0
     problem.destroy()
+
+
+def test_nonlinear_contact_problem_damps_the_cube():
+    """The same through dolfinx's NewtonSolver, with its defaults: damped, then the undamped
+    equilibrium (force balance). The cube starts closer (a gap below the first damped motion,
+    h / 100): the NewtonSolver has no line search, and a Newton step that throws the cube
+    from a gap deep into the block diverges (measured with GAP: the damped solve that first
+    reached contact diverged at every k tried)."""
+    problem, _, area = _pushed_cube(MPI.COMM_WORLD, newton_solver=True, gap=0.002)
+    result = problem.solve()
+    assert result.converged and problem.free_bodies.damped
+    assert problem.assembler.proximal.k == 0.0
+    assert problem.contact.force_resultants()[1, 2] == pytest.approx(TRACTION * area, rel=1e-6)
+    problem.destroy()
+
+
+def test_hertz_floating_hemisphere_plain_load_steps():
+    """The quarter Hertz model (meshes/hertz.py, coarse), its hemisphere held only by contact
+    under a body force, penalty 1000 E/h, plain solve_load_steps: every step converges without
+    a cut, and the contact force on the hemisphere balances the body force on it."""
+    pytest.importorskip("gmsh")
+    from test_validation import _mesh_script
+
+    hertz = _mesh_script("hertz")
+    comm = MPI.COMM_WORLD
+    mesh, cell_tags, facet_tags = hertz.hertz_mesh(
+        comm, radius=1.0, block_width=1.0, block_depth=1.0, contact_size=0.1, far_size=0.3
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    youngs, poisson, density = 1.0, 0.3, 0.02
+    mu, lmbda = youngs / (2 * (1 + poisson)), youngs * poisson / ((1 + poisson) * (1 - 2 * poisson))
+    strain = ufl.sym(ufl.grad(u))
+    dx = ufl.Measure("dx", domain=mesh, subdomain_data=cell_tags)
+    scale = dolfinx.fem.Constant(mesh, PETSc.ScalarType(0.0))
+    energy = (mu * ufl.inner(strain, strain) + 0.5 * lmbda * ufl.tr(strain) ** 2) * dx
+    energy = energy + scale * density * u[2] * dx(hertz.SPHERE)
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    bcs = [_clamp(V, facet_tags.find(hertz.BLOCK_BOTTOM))]
+    for tag, component in ((hertz.SYMMETRY_X, 0), (hertz.SYMMETRY_Y, 1)):
+        dofs = dolfinx.fem.locate_dofs_topological(V.sub(component), 2, facet_tags.find(tag))
+        bcs.append(dolfinx.fem.dirichletbc(PETSc.ScalarType(0.0), dofs, V.sub(component)))
+    penalty = fm.propose_penalty(mesh, youngs, factor=1000)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=penalty)
+    with fm.ContactProblem(residual, u, contact, bcs=bcs, energy=energy) as problem:
+        assert [b.free_motions for b in problem.free_bodies.bodies] == [1]
+        steps = fm.solve_load_steps(
+            problem, lambda t: setattr(scale, "value", t), num_steps=2, progress=False
+        )
+        assert [s.cuts for s in steps] == [0, 0]
+        weight = comm.allreduce(
+            dolfinx.fem.assemble_scalar(dolfinx.fem.form(density * dx(hertz.SPHERE))), op=MPI.SUM
+        )
+        # the free body is the hemisphere: contact holds it up against its weight
+        resultant = contact.force_resultants()[problem.free_bodies.bodies[0].index]
+        assert resultant[2] == pytest.approx(weight, rel=1e-6)
+        assert problem.assembler.proximal.k == 0.0
