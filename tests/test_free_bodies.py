@@ -105,9 +105,10 @@ def test_find_free_bodies():
 
 def test_floating_cube_pushed_by_traction():
     """Plain defaults: the cube starts a gap above the block, with no stiffness against its
-    vertical motion; the problem damps it, and the converged result is the undamped problem's: the contact force
-    on the cube balances the traction's resultant, the damping is off, and the state equals a
-    solve without damping from that state (independent: no damping, the cube already held)."""
+    vertical motion; the problem damps it, and the converged result is the undamped problem's:
+    the contact force on the cube balances the traction's resultant, the damping is off, and
+    the state equals a solve without damping from that state (independent: no damping, the
+    cube already held)."""
     comm = MPI.COMM_WORLD
     problem, u, area = _pushed_cube(comm)
     assert [b.index for b in problem.free_bodies.bodies] == [1]
