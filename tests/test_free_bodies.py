@@ -132,11 +132,10 @@ def test_floating_cube_pushed_by_traction():
         petsc_options_prefix="free_body_plain_",
     )  # fmt: skip
     again = plain.solve()
-    assert again.iterations <= 1
     scale = comm.allreduce(float(np.max(np.abs(solved))), op=MPI.MAX)
     change = comm.allreduce(float(np.max(np.abs(u.x.array - solved))), op=MPI.MAX)
-    # (the first solve stopped at its Newton tolerance, rtol 1e-10 of a residual of 1e-2)
-    assert again.residual_norms[0] <= 1e-9
+    # the damped solves' tolerance: 1e-6 of the first one's initial residual (RigidModeDamping)
+    assert again.residual_norms[0] <= 1e-6 * result.residual_norms[0]
     assert change <= 1e-6 * scale
     # and the next solve (the cube held now) is a plain one
     problem.solve()
