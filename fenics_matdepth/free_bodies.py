@@ -3,8 +3,9 @@
 A body whose Dirichlet conditions leave a rigid motion free (a floating body, a hemisphere
 resting under its own weight, a body pushed by forces) has no stiffness against that motion
 until contact has spread: Newton's matrix is singular, and the first solve fails at any load
-step and any penalty. :class:`ContactProblem` and :class:`NonlinearContactProblem` handle it
-without a change to the user's forms:
+step and any penalty. :class:`~fenics_matdepth.ContactProblem` and
+:class:`~fenics_matdepth.NonlinearContactProblem` handle it without a change to the user's
+forms:
 
 * **Found once** (:func:`find_free_bodies`): the bodies (connected components of the mesh, the
   contact surface's labelling, parallel) whose constrained dofs leave a rigid motion free: the
