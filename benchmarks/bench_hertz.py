@@ -215,6 +215,7 @@ def run(
     pressure_term: str = "linear",
     model: str = "quarter",
     petsc_options: dict | None = None,
+    damp_free_bodies: bool = True,
 ) -> dict:
     comm = MPI.COMM_WORLD
     full = model == "full"
@@ -265,6 +266,7 @@ def run(
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs, energy=energy,
         petsc_options={"snes_rtol": 1e-8} | (petsc_options or {}),
+        damp_free_bodies=damp_free_bodies,
     )  # fmt: skip
     force = LOAD / 2
     e_star = YOUNGS / (2 * (1 - POISSON**2))
@@ -436,9 +438,10 @@ def main() -> None:
     parser.add_argument(
         "--factor",
         type=float,
-        default=None,
-        help="propose_penalty factor (default 10; 100 for the augmented Lagrangian, which at 10 "
-        "needs 520 pressure updates and 15 cuts at res 1.0)",
+        nargs="+",
+        default=[None],
+        help="propose_penalty factors, one run each (default 10; 100 for the augmented "
+        "Lagrangian, which at 10 needs 520 pressure updates and 15 cuts at res 1.0)",
     )
     parser.add_argument(
         "--tol", type=float, default=0.05, help="augmented: overlap tolerance / delta"
@@ -471,7 +474,16 @@ def main() -> None:
     )
     parser.add_argument("--growth", type=float, default=10.0, help="continuation: per stage")
     parser.add_argument(
-        "--no-damping", action="store_true", help="without RigidModeDamping (the first step fails)"
+        "--no-damping",
+        action="store_true",
+        help="without RigidModeDamping and its term in the energy: the plain problem, whose "
+        "automatic handling of bodies held only by contact (ContactProblem's damp_free_bodies) "
+        "damps the hemisphere",
+    )
+    parser.add_argument(
+        "--no-free-body-damping",
+        action="store_true",
+        help="ContactProblem(damp_free_bodies=False); with --no-damping the first step fails",
     )
     args = parser.parse_args()
     methods = ["penalty", "augmented"] if args.method == "both" else [args.method]
@@ -482,65 +494,65 @@ def main() -> None:
         return row["method"]
 
     rows = []
-    for res in args.res:
-        for method in methods:
-            try:
-                factor = args.factor or (100.0 if method == "augmented" else 10.0)
-                row = run(
-                    res, method, factor, args.tol, args.steps, args.relaxation,
-                    args.max_updates, args.start_factor, args.growth, not args.no_damping,
-                    args.pressure_term, args.model, dict(o.split("=", 1) for o in args.petsc),
-                )  # fmt: skip
-            except RuntimeError as err:
-                if MPI.COMM_WORLD.rank == 0:
-                    print(f"res {res} {method}: FAILED: {str(err)[:300]}", flush=True)
-                continue
-            rows.append(row)
+    for res, method, given in [(r, m, f) for r in args.res for m in methods for f in args.factor]:
+        try:
+            factor = given or (100.0 if method == "augmented" else 10.0)
+            row = run(
+                res, method, factor, args.tol, args.steps, args.relaxation,
+                args.max_updates, args.start_factor, args.growth, not args.no_damping,
+                args.pressure_term, args.model, dict(o.split("=", 1) for o in args.petsc),
+                not args.no_free_body_damping,
+            )  # fmt: skip
+        except RuntimeError as err:
             if MPI.COMM_WORLD.rank == 0:
+                print(f"res {res} {method}: FAILED: {str(err)[:300]}", flush=True)
+            continue
+        rows.append(row)
+        if MPI.COMM_WORLD.rank == 0:
+            print(
+                f"res {res:4.2f} {args.model} {label(row):9s} {row['vertices']:6d} vertices "
+                f"{row['cells']:6d} cells  eps {row['penalty']:.4g} "
+                f"({row['factor']:g} E/h)  newton {row['newton']:3d}"
+                f"{'  updates ' + str(row['updates']) if 'updates' in row else ''}  "
+                f"cuts {row['cuts']}  {row['seconds']:6.1f} s  F {row['force']:.4f} "
+                f"(block {row['force_block']:.4f})  overlap/delta "
+                f"{row['overlap_delta']:.3f}  p_max {row['p_max']:.3f} vs p0 {row['p0']:.3f}"
+                f" ({row['p_error']:+.1%}, peer {PEER_PMAX_ERROR.get(res, np.nan):+.1%})  "
+                f"p_max from the stress -sigma n.n: block {row['p_stress']:.3f} "
+                f"({row['p_stress_error']:+.1%}, r {row['p_stress_r']:.3f}), sphere "
+                f"{row['p_stress_sphere']:.3f} ({row['p_stress_sphere_error']:+.1%}, r "
+                f"{row['p_stress_sphere_r']:.3f})  "
+                f"a {row['a_moment']:.3f} vs {row['a']:.3f} ({row['a_error']:+.1%})  "
+                f"Hertz as nodal pressure at the pole {row['p_ref_pole']:.3f} "
+                f"({row['p_ref_pole'] / row['p0'] - 1:+.1%} of p0; p_max "
+                f"{row['p_ref_error']:+.1%} of it)"
+                + (
+                    f"  stage solves {row['stage_solves']} (retries {row['retries']})"
+                    if "stages" in row
+                    else ""
+                ),
+                flush=True,
+            )
+            quadratic = row.get("pressure_term") == "quadratic"
+            density = "(eps + p_i / w) g" if quadratic else "eps g + p"
+            print(
+                f"    pointwise pressure {density} at the pole {row['p_point']:.3f} (block "
+                f"{row['p_point_block']:.3f} + sphere {row['p_point_sphere']:.3f}; "
+                f"{row['p_point_error']:+.1%} of p0, peer "
+                f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int ({density}) dA"
+                f"{' (p_i for p_T: approximate)' if quadratic else ''}: block "
+                f"{row['carried_block']:.4f} + sphere {row['carried_sphere']:.4f} = "
+                f"{row['carried_block'] + row['carried_sphere']:.4f} (F {row['force']:.4f}); "
+                f"from the vertex values: block {row['lumped_block']:.4f} + sphere "
+                f"{row['lumped_sphere']:.4f}",
+                flush=True,
+            )
+            for load, penalty, its, ok in row.get("stages", []):
                 print(
-                    f"res {res:4.2f} {args.model} {label(row):9s} {row['vertices']:6d} vertices "
-                    f"{row['cells']:6d} cells  eps {row['penalty']:.4g} "
-                    f"({row['factor']:g} E/h)  newton {row['newton']:3d}"
-                    f"{'  updates ' + str(row['updates']) if 'updates' in row else ''}  "
-                    f"cuts {row['cuts']}  {row['seconds']:6.1f} s  F {row['force']:.4f} "
-                    f"(block {row['force_block']:.4f})  overlap/delta "
-                    f"{row['overlap_delta']:.3f}  p_max {row['p_max']:.3f} vs p0 {row['p0']:.3f}"
-                    f" ({row['p_error']:+.1%}, peer {PEER_PMAX_ERROR.get(res, np.nan):+.1%})  "
-                    f"p_max from the stress -sigma n.n: block {row['p_stress']:.3f} "
-                    f"({row['p_stress_error']:+.1%}, r {row['p_stress_r']:.3f}), sphere "
-                    f"{row['p_stress_sphere']:.3f} ({row['p_stress_sphere_error']:+.1%}, r "
-                    f"{row['p_stress_sphere_r']:.3f})  "
-                    f"a {row['a_moment']:.3f} vs {row['a']:.3f} ({row['a_error']:+.1%})  "
-                    f"Hertz as nodal pressure at the pole {row['p_ref_pole']:.3f} "
-                    f"({row['p_ref_pole'] / row['p0'] - 1:+.1%} of p0; p_max "
-                    f"{row['p_ref_error']:+.1%} of it)"
-                    + (
-                        f"  stage solves {row['stage_solves']} (retries {row['retries']})"
-                        if "stages" in row
-                        else ""
-                    ),
+                    f"    load {load:.4g}  penalty {penalty:.4g}  newton {its:3d}"
+                    f"{'' if ok else '  failed'}",
                     flush=True,
                 )
-                quadratic = row.get("pressure_term") == "quadratic"
-                density = "(eps + p_i / w) g" if quadratic else "eps g + p"
-                print(
-                    f"    pointwise pressure {density} at the pole {row['p_point']:.3f} (block "
-                    f"{row['p_point_block']:.3f} + sphere {row['p_point_sphere']:.3f}; "
-                    f"{row['p_point_error']:+.1%} of p0, peer "
-                    f"{PEER_PMAX_ERROR.get(res, np.nan):+.1%})  int ({density}) dA"
-                    f"{' (p_i for p_T: approximate)' if quadratic else ''}: block "
-                    f"{row['carried_block']:.4f} + sphere {row['carried_sphere']:.4f} = "
-                    f"{row['carried_block'] + row['carried_sphere']:.4f} (F {row['force']:.4f}); "
-                    f"from the vertex values: block {row['lumped_block']:.4f} + sphere "
-                    f"{row['lumped_sphere']:.4f}",
-                    flush=True,
-                )
-                for load, penalty, its, ok in row.get("stages", []):
-                    print(
-                        f"    load {load:.4g}  penalty {penalty:.4g}  newton {its:3d}"
-                        f"{'' if ok else '  failed'}",
-                        flush=True,
-                    )
 
 
 if __name__ == "__main__":

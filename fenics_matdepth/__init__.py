@@ -37,6 +37,7 @@ from fenics_matdepth.contact.surface import DepthDeficiencyWarning
 from fenics_matdepth.continuation import ContinuationStage, PenaltyContinuation
 from fenics_matdepth.depth import depth_deficiency, material_depth
 from fenics_matdepth.dynamics import BackwardEuler, Newmark
+from fenics_matdepth.free_bodies import FreeBody, FreeBodyDamping, find_free_bodies
 from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
 from fenics_matdepth.problems import ContactProblem, NonlinearContactProblem, rigid_body_modes
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
@@ -51,6 +52,8 @@ __all__ = [
     "ContactProblem",
     "ContinuationStage",
     "DepthDeficiencyWarning",
+    "FreeBody",
+    "FreeBodyDamping",
     "LoadStep",
     "Newmark",
     "NonlinearContactProblem",
@@ -68,6 +71,7 @@ __all__ = [
     "contact",
     "damping_energy",
     "depth_deficiency",
+    "find_free_bodies",
     "geometry",
     "kinematics",
     "material_depth",

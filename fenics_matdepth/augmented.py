@@ -60,14 +60,17 @@ from mpi4py import MPI
 import numpy as np
 
 from fenics_matdepth.depth import boundary_triangles
-from fenics_matdepth.problems import looser_tolerances
 from fenics_matdepth.results import Solvable, SolveResult
+from fenics_matdepth.tolerances import looser_tolerances
 
 __all__ = ["AugmentedLagrangian", "RigidModeDamping", "UzawaUpdate", "damping_energy"]
 
 #: A failed inner solve after a pressure update is retried with the update halved, at most
 #: this many times.
 MAX_UPDATE_HALVINGS = 4
+#: A damped solve of RigidModeDamping that fails after k fell is retried from its anchor with
+#: k falling by the square root of the factor, at most this many times.
+MAX_DAMPED_RETRIES = 3
 
 
 def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
@@ -358,7 +361,9 @@ class RigidModeDamping:
     repeats with ``k`` divided by ``1 / decrease`` (proximal point iteration with a falling
     stiffness: the first solve moves a free body little, the later ones let contact, which has
     engaged meanwhile, carry it) until a solve changes ``u`` by less than ``rtol`` times the
-    whole change of this call or ``k`` has fallen below ``1e-6`` of its start. Then ``k`` is set
+    whole change of this call or ``k`` has fallen below ``1e-6`` of its start (a damped solve
+    that fails after ``k`` fell is retried from its anchor with ``k`` falling by the square
+    root of the factor from then on, at most ``MAX_DAMPED_RETRIES`` times). Then ``k`` is set
     to 0 and a last solve, from that nearly balanced state, removes the remaining damping
     force: the result solves the undamped problem.
 
@@ -438,8 +443,10 @@ class RigidModeDamping:
                     # contact no longer holds the body: damped solves from the start
                     self.u.x.array[:] = start
                     self.u.x.scatter_forward()
-            for j in range(self.max_solves if result is None or not result.converged else 0):
-                self._k.value = self.stiffness * self.decrease**j
+            k, decrease, retries = self.stiffness, self.decrease, 0
+            damp = result is None or not result.converged
+            while damp and self.damped_solves < self.max_solves:
+                self._k.value = k
                 self.anchor.x.array[:] = self.u.x.array
                 result = solve_once()
                 if first_norm is None and len(result.residual_norms):
@@ -451,15 +458,27 @@ class RigidModeDamping:
                     # decides (seen on DOLFINx 0.11: the energy line search stopped a damped
                     # solve at 7e-5 of its initial residual)
                     if not (len(r) and np.isfinite(r[-1]) and r[-1] <= 1e-3 * r[0]):
-                        break
+                        if k == self.stiffness or retries >= MAX_DAMPED_RETRIES:
+                            break
+                        # k fell too far for this solve (a body thrown deep into another;
+                        # seen without a line search): from its anchor again, k falling by the
+                        # square root of the factor from now on
+                        self.u.x.array[:] = self.anchor.x.array
+                        self.u.x.scatter_forward()
+                        k /= decrease
+                        decrease = np.sqrt(decrease)
+                        k *= decrease
+                        retries += 1
+                        continue
                     result = dataclasses.replace(result, converged=True)
                 local = self.u.x.array
                 step = comm.allreduce(
                     float(np.max(np.abs(local - self.anchor.x.array))), op=MPI.MAX
                 )
                 total = comm.allreduce(float(np.max(np.abs(local - start))), op=MPI.MAX)
-                if step <= self.rtol * total or self.decrease ** (j + 1) < 1e-6:
+                if step <= self.rtol * total or k * decrease < 1e-6 * self.stiffness:
                     break
+                k *= decrease
             if self.damped_solves and result.converged:
                 self._k.value = 0.0
                 result = solve_once()

@@ -15,7 +15,6 @@ Newton iteration, only when a contact coupling falls outside it. Load and time s
 
 from __future__ import annotations
 
-import contextlib
 import typing
 
 from petsc4py import PETSc
@@ -27,9 +26,13 @@ import ufl
 from fenics_matdepth import linear_solver
 from fenics_matdepth._compat import NewtonSolverProblemBase, bc_constrains_space
 from fenics_matdepth.contact.operator import ContactOperator
+from fenics_matdepth.free_bodies import FreeBodyDamping
 from fenics_matdepth.results import SolveResult
 from fenics_matdepth.snes_callbacks import SNESCallbacks
 from fenics_matdepth.system_assembler import TIMING_KEYS, SystemAssembler
+
+# (kept importable from here, where they were first defined)
+from fenics_matdepth.tolerances import looser_tolerances, own_rtol
 
 __all__ = [
     "ContactProblem",
@@ -157,8 +160,14 @@ class ContactProblem(SNESCallbacks, _Releasable):
             same rules, set up anew once GMRES needs more than AMG_KEPT_GROWTH times the
             iterations it took on a new one.
             ``False``: a factorisation per iteration.
+        damp_free_bodies: find the bodies whose Dirichlet conditions leave a rigid motion free
+            and, where their load would move them by more than an element (no contact yet) or
+            a solve fails, damp them until contact holds them; the result is the undamped
+            problem's (:mod:`fenics_matdepth.free_bodies`). ``False``: never.
 
     Attributes:
+        free_bodies: the :class:`~fenics_matdepth.free_bodies.FreeBodyDamping` (its
+            ``bodies``, and whether the last solve was ``damped``).
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
             ``contact_update`` (gather, refit, pair search), ``contact_assembly`` (pair kernels
             and insertion) and ``linear_solve`` (factorisation or preconditioner set-up, and
@@ -178,6 +187,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
         petsc_options_prefix: str = "matdepth_",
         petsc_options: dict | None = None,
         keep_factorisation: bool = True,
+        damp_free_bodies: bool = True,
     ):
         _check_problem_inputs(u, contact, bcs)
         self.u = u
@@ -187,6 +197,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._J = dolfinx.fem.form(J if J is not None else ufl.derivative(F, u))
         self._energy = dolfinx.fem.form(energy) if energy is not None else None
         self.assembler = SystemAssembler(self._F, self._J, u, contact, self.bcs, self._energy)
+        self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
         self._watch = self.assembler.watch
         self.timings = dict(self._watch.totals)
         self.prefix = petsc_options_prefix
@@ -295,12 +306,16 @@ class ContactProblem(SNESCallbacks, _Releasable):
         """Solve from the current ``u``; ``u`` holds the last iterate afterwards (collective).
 
         The Dirichlet values are reached by the first Newton step, not written into ``u``
-        beforehand.
+        beforehand. Bodies held only by contact are damped where needed (``damp_free_bodies``).
 
         Args:
             raise_on_failure: raise ``RuntimeError`` (with the residual history) when SNES does
                 not converge; otherwise return the result with ``converged=False``.
         """
+        return self.free_bodies.solve(self, self._solve_undamped, raise_on_failure)
+
+    def _solve_undamped(self, raise_on_failure: bool = True) -> SolveResult:
+        """One SNES solve from the current ``u`` (see :meth:`solve`)."""
         start = self.u.x.petsc_vec.copy()
         # a solve keeps factorisations unless the last ones that tried found it did not pay
         self._may_keep = self._keep_backoff.take()
@@ -421,6 +436,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         bcs: Dirichlet conditions.
         J: Jacobian form; default ``ufl.derivative(F, u)``.
         form_compiler_options, jit_options: passed on to dolfinx's form compilation.
+        damp_free_bodies: as for :class:`ContactProblem`.
     """
 
     def __init__(
@@ -432,6 +448,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         J: ufl.Form | None = None,
         form_compiler_options: dict | None = None,
         jit_options: dict | None = None,
+        damp_free_bodies: bool = True,
     ):
         _check_problem_inputs(u, contact, bcs)
         super().__init__(
@@ -441,6 +458,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         self.u = u
         self.contact = contact
         self.assembler = SystemAssembler(self.L, self.a, u, contact, self.bcs)
+        self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
         self._watch = self.assembler.watch
         self._solver = None
         self._trial = u.x.petsc_vec.duplicate()
@@ -542,12 +560,17 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         x.axpy(-step, dx)
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
-        """Solve with the attached NewtonSolver (one from :meth:`newton_solver` if none).
+        """Solve with the attached NewtonSolver (one from :meth:`newton_solver` if none);
+        bodies held only by contact are damped where needed (``damp_free_bodies``).
 
         Args:
             raise_on_failure: raise ``RuntimeError`` with the residual history if Newton does
                 not converge.
         """
+        return self.free_bodies.solve(self, self._solve_undamped, raise_on_failure)
+
+    def _solve_undamped(self, raise_on_failure: bool = True) -> SolveResult:
+        """One Newton solve from the current ``u`` (see :meth:`solve`)."""
         if self._solver is None:
             self.newton_solver()
         self.residual_norms = []
@@ -582,42 +605,3 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         if getattr(self, "_trial", None) is not None:
             self._trial.destroy()
         self._solver = None
-
-
-# -- the Newton tolerances of a problem (for the wrappers that solve it several times) ------------
-
-
-def _newton_solvers(problem) -> tuple[typing.Any, typing.Any]:
-    """The problem's SNES (``snes``) or DOLFINx NewtonSolver (``_solver``), either may be None."""
-    return getattr(problem, "snes", None), getattr(problem, "_solver", None)
-
-
-def own_rtol(problem) -> float | None:
-    """The problem's relative Newton tolerance (None if it exposes no solver)."""
-    snes, newton = _newton_solvers(problem)
-    if snes is not None:
-        return float(snes.getTolerances()[0])
-    return None if newton is None else float(newton.rtol)
-
-
-@contextlib.contextmanager
-def looser_tolerances(problem, rtol: float | None, atol: float | None):
-    """While solving a stage, stop Newton at ``rtol`` (relative to the stage's initial residual)
-    or ``atol`` (absolute) where these are looser than the problem's own (None: unchanged)."""
-    snes, newton = _newton_solvers(problem)
-    if snes is not None:
-        rtol0, atol0, stol, max_it = snes.getTolerances()
-        snes.setTolerances(rtol=max(rtol0, rtol or 0.0), atol=max(atol0, atol or 0.0))
-        try:
-            yield
-        finally:
-            snes.setTolerances(rtol=rtol0, atol=atol0, stol=stol, max_it=max_it)
-    elif newton is not None:
-        rtol0, atol0 = newton.rtol, newton.atol
-        newton.rtol, newton.atol = max(rtol0, rtol or 0.0), max(atol0, atol or 0.0)
-        try:
-            yield
-        finally:
-            newton.rtol, newton.atol = rtol0, atol0
-    else:
-        yield

@@ -54,6 +54,8 @@ class SolveResult:
             converges fast (see ``linear_solver.REFACTORISE_ITERATIONS``), or with the default
             AMG preconditioner the hierarchies it built (``linear_solver.AMG_KEPT_GROWTH``); 0
             otherwise.
+        advice: what to do about a failure, where the solver knows its cause (a body held only
+            by contact: :mod:`fenics_matdepth.free_bodies`); empty otherwise.
     """
 
     converged: bool
@@ -64,16 +66,23 @@ class SolveResult:
     min_det_F: float = np.nan
     shifted_steps: int = 0
     factorisations: int = 0
+    advice: str = ""
 
     def failure_message(self) -> str:
-        """Why the solve failed, with the residual history."""
+        """Why the solve failed, with the residual history, and what to do: ``advice`` where
+        the solver knows the cause (a body held only by contact), else to reduce the load step
+        or the penalty."""
         return (
             "contact Newton solve did not converge "
             f"(reason {self.reason}{_reason_name(self.reason)}) after "
             f"{self.iterations} iterations; residual norms: "
             + ", ".join(f"{r:.3e}" for r in self.residual_norms)
-            + ". Reduce the load step (solve_load_steps cuts it automatically), or lower the "
-            "penalty."
+            + ". "
+            + (
+                self.advice
+                or "Reduce the load step (solve_load_steps cuts it automatically), or lower the "
+                "penalty."
+            )
         )
 
     @classmethod

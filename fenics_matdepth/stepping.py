@@ -378,7 +378,9 @@ def solve_load_steps(
 
     The Dirichlet values are not written into the starting state: the problems impose them
     through the first Newton step (see
-    :class:`~fenics_matdepth.system_assembler.SystemAssembler`).
+    :class:`~fenics_matdepth.system_assembler.SystemAssembler`). Bodies held only by contact
+    (a floating body, a hemisphere resting under its weight) need nothing here: the problems
+    damp them while contact engages (``damp_free_bodies``, :mod:`fenics_matdepth.free_bodies`).
 
     Args:
         problem: a :class:`~fenics_matdepth.ContactProblem` or

@@ -106,6 +106,9 @@ class SystemAssembler:
         #: trial states found inadmissible (det F <= 0 or a non-finite residual or energy)
         self.rejected_states = 0
         self._scratch = u.x.petsc_vec.duplicate()
+        #: the proximal term of bodies held only by contact
+        #: (:class:`~fenics_matdepth.free_bodies.ProximalTerm`, active while its k > 0), or None
+        self.proximal = None
 
     def set_near_nullspace(self, modes: PETSc.NullSpace) -> None:
         """Set ``modes`` as the near-nullspace of the matrix, now and after every rebuild."""
@@ -151,6 +154,8 @@ class SystemAssembler:
         with self.watch("bulk_assembly"):
             dolfinx.fem.petsc.apply_lifting(b, [self.a], [self.bcs], x0=[x], alpha=-1.0)
             b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            if self.proximal is not None:
+                self.proximal.add_residual(x, b)
             dolfinx.fem.petsc.set_bc(b, self.bcs, x, -1.0)
         if not np.isfinite(b.norm()):
             b.set(np.nan)
@@ -167,6 +172,8 @@ class SystemAssembler:
             A.assemble()
         with self.watch("contact_assembly"):
             self.contact.add_jacobian(A)
+            if self.proximal is not None:
+                self.proximal.add_jacobian(A)
 
     def total_energy(self) -> float:
         """Bulk plus contact energy at the current state; NaN where inadmissible (collective)."""
@@ -177,6 +184,8 @@ class SystemAssembler:
             bulk = self.comm.allreduce(dolfinx.fem.assemble_scalar(self.energy_form))
         with self.watch("contact_assembly"):
             value = bulk + self.contact.energy()
+            if self.proximal is not None:
+                value += self.proximal.energy(self.u.x.petsc_vec, self.comm)
         if not np.isfinite(value):
             self.rejected_states += 1
             return np.nan

@@ -24,6 +24,7 @@ PUBLIC = {
     # problems and their results
     "SystemAssembler", "ContactProblem", "NonlinearContactProblem", "rigid_body_modes",
     "solve_nonlinear", "SolveResult", "Solvable",
+    "FreeBody", "FreeBodyDamping", "find_free_bodies",
     # stepping
     "solve_load_steps", "LoadStep", "StopRequested", "solve_time_steps", "TimeStep",
     "Newmark", "BackwardEuler", "Checkpoint",
