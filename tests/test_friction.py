@@ -1,0 +1,114 @@
+"""Coulomb friction over the intersection polygons: the law's input checks, the lagged
+potential's exact derivatives (finite differences, one pair and the operator), and a block
+pulled over a plane (stick, then sliding at mu N)."""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dolfinx
+import dolfinx.fem.petsc
+import numpy as np
+import pytest
+from conftest import assert_fd_derivatives, assert_operator_derivatives, merged_mesh
+
+import fenics_matdepth as fm
+from fenics_matdepth.contact.kernels.friction import (
+    empty_reference,
+    friction_pairs,
+    friction_points,
+    friction_reference,
+)
+from fenics_matdepth.meshing import box_tetrahedra
+
+# -- the law -----------------------------------------------------------------------------------
+
+
+def test_coulomb_checks_its_input_and_looks_up_pairs():
+    assert fm.Coulomb(0.3).pair_mu(np.array([0, 1]), np.array([1, 1])).tolist() == [0.3, 0.3]
+    law = fm.Coulomb({(1, 0): 0.5, (2, 2): 0.01}, slip_tol=1e-3, default=0.1)
+    got = law.pair_mu(np.array([0, 1, 2, 0]), np.array([1, 0, 2, 2]))
+    assert got.tolist() == [0.5, 0.5, 0.01, 0.1]
+    for bad in (-0.1, float("nan"), "x"):
+        with pytest.raises(ValueError, match="mu must be a number >= 0"):
+            fm.Coulomb(bad)
+    with pytest.raises(ValueError, match="pairs of body indices"):
+        fm.Coulomb({(0, 1, 2): 0.3})
+    with pytest.raises(ValueError, match="slip_tol must be a positive length"):
+        fm.Coulomb(0.3, slip_tol=0.0)
+    with pytest.raises(ValueError, match="default must be"):
+        fm.Coulomb({(0, 1): 0.3}, default=-1.0)
+
+
+# -- one pair: the kernels against finite differences ------------------------------------------
+
+_TRI = np.array([[-0.2, 0.1, 0.3], [0.9, -0.1, 0.2], [0.1, 0.9, 0.35]])
+_TET = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _one_pair(depth: np.ndarray, split: bool, penalty: float = 40.0, mu: float = 0.4):
+    """The lagged data of one (triangle, tetrahedron) pair at its reference state."""
+    x0 = np.vstack((_TRI, _TET))
+    tri = np.array([[0, 1, 2]], dtype=np.int32)
+    tet = np.array([[3, 4, 5, 6, 7 if split else -1]], dtype=np.int32)
+    pair = np.zeros(1, dtype=np.int32)
+    args = (x0, depth, tri, tet, pair, pair, np.array([penalty]), np.zeros((1, 3)), np.array([mu]))
+    nq = friction_reference(*args, False, *empty_reference())
+    qpair = np.empty(nq, dtype=np.int32)
+    coef, normal, weight = np.empty((nq, 7)), np.empty((nq, 3)), np.empty(nq)
+    assert friction_reference(*args, True, qpair, coef, normal, weight) == nq
+    return x0, np.array([0, nq], dtype=np.int32), coef, normal, weight
+
+
+@pytest.mark.parametrize(
+    "case", ["stick_and_slip", "at_rest", "normal_motion_only", "split_tetrahedron"]
+)
+def test_pair_derivatives_match_finite_differences(case):
+    rng = np.random.default_rng(7)
+    split = case == "split_tetrahedron"
+    # depths of the tetrahedron's vertices (then the centroid's, used when split)
+    depth = np.array([0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.15]) if split else np.zeros(7)
+    if not split:
+        depth[3:7] = [0.3, 0.1, 0.05, 0.0]
+    x0, qptr, coef, normal, weight = _one_pair(depth, split)
+    assert qptr[1] >= 9 and np.all(weight > 0.0)
+    # the lagged data: the slip is a relative displacement (coefficients sum to 0), unit normals
+    assert np.allclose(coef.sum(axis=1), 0.0) and np.allclose(np.linalg.norm(normal, axis=1), 1)
+    verts = np.arange(7, dtype=np.int32)[None]
+    tol = 0.02
+    du = {
+        "stick_and_slip": 0.03 * rng.standard_normal((7, 3)),
+        "at_rest": np.zeros((7, 3)),
+        "normal_motion_only": np.outer(np.r_[np.ones(3), np.zeros(4)], normal[0]) * 0.1,
+        "split_tetrahedron": 0.03 * rng.standard_normal((7, 3)),
+    }[case]
+
+    def f(z):
+        e, g, h = friction_pairs(
+            z.reshape(7, 3), verts, x0[None], qptr, coef, normal, weight, tol, True, True
+        )
+        return e[0], g[0], h[0]
+
+    z0 = (x0 + du).ravel()
+    if case in ("at_rest", "normal_motion_only"):
+        # no slip: f0(|s|) has a |s|^3 term, so no finite differences across s = 0
+        energy, grad, hess = f(z0)
+    else:
+        energy, grad, hess = assert_fd_derivatives(f, z0, rtol=1e-6, symmetric=True)
+    slip, ratio, _ = friction_points(x0 + du, verts, x0[None], qptr, coef, normal, weight, tol)
+    if case == "stick_and_slip" or split:
+        assert np.any(slip < tol) and np.any(slip > tol)  # both branches of the mollifier
+    if case in ("at_rest", "normal_motion_only"):
+        assert energy <= 1e-28 and np.abs(grad).max() < 1e-14
+        # the stick stiffness 2 c / e in the tangent plane, along each point's slip map
+        b = np.stack([np.kron(c[None, :], np.eye(3)) for c in coef])  # (nq, 3, 21)
+        proj = np.eye(3) - normal[:, :, None] * normal[:, None, :]
+        expect = np.einsum("q,qia,qij,qjb->ab", 2.0 * weight / tol, b, proj, b)
+        assert np.abs(hess - expect).max() <= 1e-12 * np.abs(expect).max()
+    if case == "normal_motion_only":
+        # a triangle moving along the (common) normal does not slip at points of that normal
+        same = np.all(np.isclose(normal, normal[0]), axis=1)
+        assert same.all() and np.allclose(slip, 0.0, atol=1e-14)
+    # the Hessian is positive semi-definite (the potential is convex in the positions)
+    assert np.linalg.eigvalsh(hess).min() >= -1e-10 * np.abs(hess).max()
+    assert np.all(ratio <= 1.0)
