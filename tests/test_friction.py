@@ -112,3 +112,41 @@ def test_pair_derivatives_match_finite_differences(case):
     # the Hessian is positive semi-definite (the potential is convex in the positions)
     assert np.linalg.eigvalsh(hess).min() >= -1e-10 * np.abs(hess).max()
     assert np.all(ratio <= 1.0)
+
+
+# -- the operator: residual and Jacobian of the friction potential -----------------------------
+
+
+def _two_boxes_with_friction(comm: MPI.Comm, friction: fm.Coulomb):
+    """Two boxes in one mesh, the upper one sunk 0.2 into the lower one (the operator's
+    reference state), as in test_operator."""
+    mesh = merged_mesh(
+        comm,
+        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        box_tetrahedra(4, (0.23, 0.11, 0.8), (0.9, 0.8, 1.0)),
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    op = fm.ContactOperator(
+        u, fm.material_depth(mesh), penalty=50.0, friction=friction,
+        allow_reference_overlap=True,  # the boxes overlap in the mesh on purpose
+    )  # fmt: skip
+    return V, u, op
+
+
+def test_operator_friction_derivatives_match_finite_differences():
+    comm = MPI.COMM_WORLD
+    V, u, op = _two_boxes_with_friction(comm, fm.Coulomb(0.4, slip_tol=0.002))
+    x = V.tabulate_dof_coordinates()
+    # slips of a few slip tolerances: points on both branches of the mollifier
+    u.x.array[:] = (0.02 * np.sin([3.1, 2.3, 1.7] * x + np.array([0.3, 0.1, 0.7]))).ravel()
+    op.update()
+    d = op.friction_diagnostics()
+    assert d["stick_points"] > 0 and d["slip_points"] > 0
+    assert 0.0 < d["friction_dissipation"] and d["max_traction_ratio"] == pytest.approx(1.0)
+    assert_operator_derivatives(op, u, h=1e-6, rtol=1e-6)
+    # advance: the current state is the reference, the friction potential is 0 there
+    e_before = op.energy()
+    op.advance()
+    assert op.friction_diagnostics()["friction_dissipation"] == 0.0
+    assert op.energy() < e_before
