@@ -203,6 +203,11 @@ class StepEngine:
                 if self.on_step is not None:
                     self.on_step(record)
                 self.reporter.step(self.reached(), self.line(record))
+                advance = getattr(getattr(self.problem, "contact", None), "advance", None)
+                if advance is not None:
+                    # the next step's friction slips from here (a cut goes back to the last
+                    # converged state, which stays the friction's reference)
+                    advance()
                 self.grow(cuts)
                 self.save()
         except StopRequested as err:

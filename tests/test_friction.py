@@ -10,7 +10,15 @@ import dolfinx
 import dolfinx.fem.petsc
 import numpy as np
 import pytest
-from conftest import assert_fd_derivatives, assert_operator_derivatives, merged_mesh
+import ufl
+from conftest import (
+    assert_fd_derivatives,
+    assert_operator_derivatives,
+    clamped_and_moved,
+    merged_mesh,
+    neo_hookean_residual,
+    operator_residual,
+)
 
 import fenics_matdepth as fm
 from fenics_matdepth.contact.kernels.friction import (
@@ -150,3 +158,114 @@ def test_operator_friction_derivatives_match_finite_differences():
     op.advance()
     assert op.friction_diagnostics()["friction_dissipation"] == 0.0
     assert op.energy() < e_before
+
+
+# -- a block pulled over a plane ---------------------------------------------------------------
+
+#: the block's top: pressed down by PRESS, then pulled along x to PULL[i] in the steps after
+PRESS = 0.02
+PULL = [0.002, 0.004, 0.04, 0.07, 0.1]
+MU = 0.3
+
+
+def _pulled_block(comm: MPI.Comm) -> list[dict]:
+    """A 0.6 x 0.6 x 0.4 block on a 1.5 x 1.5 x 0.5 slab (neo-Hookean, E = 1, nu = 0.3):
+    the slab's bottom clamped, the block's top pressed down by PRESS and then pulled along x.
+    Per converged step: the friction force T and the normal force N on the block (from the
+    residuals with and without friction), the work of the friction forces over the step's
+    displacement and the operator's friction diagnostics."""
+    mesh = merged_mesh(
+        comm,
+        box_tetrahedra((6, 6, 2), (0.0, 0.0, 0.0), (1.5, 1.5, 0.5)),
+        box_tetrahedra((4, 4, 2), (0.3, 0.45, 0.5), (0.6, 0.6, 0.4)),
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    residual, psi = neo_hookean_residual(u)
+    bcs, g = clamped_and_moved(V, lambda x: np.isclose(x[2], 0.0), lambda x: np.isclose(x[2], 0.9))
+    depth = fm.material_depth(mesh)
+    eps = fm.propose_penalty(mesh, 1.0)
+    contact = fm.ContactOperator(u, depth, penalty=eps, friction=fm.Coulomb(MU))
+    normal = fm.ContactOperator(u, depth, penalty=eps)  # the same contact, frictionless
+    problem = fm.ContactProblem(
+        residual, u, contact, bcs=bcs, energy=psi * ufl.dx, petsc_options_prefix="friction_"
+    )
+    table = np.array([[0.0, 0.0], [0.0, PRESS]] + [[p, PRESS] for p in PULL])
+
+    def set_load(t):
+        i = min(int(t), len(table) - 2)
+        ux, uz = table[i] + (t - i) * (table[i + 1] - table[i])
+        g.interpolate(
+            lambda x: np.vstack((np.full(x.shape[1], ux), 0 * x[0], np.full(x.shape[1], -uz)))
+        )
+
+    n_owned = V.dofmap.index_map.size_local
+    lo = V.dofmap.index_map.local_range[0]
+    body = contact.body_of_vertex[lo + np.arange(n_owned)]
+    z = V.tabulate_dof_coordinates()[:n_owned, 2]
+    block = comm.allreduce(int(body[z > 0.6].max()) if np.any(z > 0.6) else -1, op=MPI.MAX)
+    on_block = body == block
+    steps, last = [], {"u": u.x.array[: 3 * n_owned].copy()}
+
+    def measure(load):
+        contact.update()
+        normal.update()
+        b_all = operator_residual(contact, V).array.reshape(-1, 3)
+        b_normal = operator_residual(normal, V).array.reshape(-1, 3)
+        b_friction = b_all - b_normal
+        du = u.x.array[: 3 * n_owned] - last["u"]
+        last["u"] = u.x.array[: 3 * n_owned].copy()
+        steps.append({
+            "load": load,
+            "T": -comm.allreduce(float(b_friction[on_block, 0].sum())),
+            "N": -comm.allreduce(float(b_normal[on_block, 2].sum())),
+            "work": comm.allreduce(float(b_friction.ravel() @ du)),
+        })  # fmt: skip
+
+    # the writer sees each converged state before the friction's reference moves on
+    records = fm.solve_load_steps(
+        problem, set_load, num_steps=len(table) - 1, end=len(table) - 1.0, writer=measure,
+        progress=False,
+    )  # fmt: skip
+    return [
+        {**s, **r.diagnostics, "iterations": r.iterations}
+        for s, r in zip(steps, records, strict=True)
+    ]
+
+
+#: T and N of each step as measured serially (DOLFINx 0.9): any partition gives them
+SERIAL_T_N = [
+    (-3.62693e-10, 0.0130063), (-0.000433391, 0.0130354), (-0.000862712, 0.0130638),
+    (-0.00393401, 0.0132368), (-0.00399034, 0.0133295), (-0.00401892, 0.0133203),
+]  # fmt: skip
+
+
+def test_block_pulled_over_a_plane_sticks_then_slides_at_mu_n():
+    """While the pull is small the friction holds the block: every point sticks, and the
+    tangential force is linear in the pull (the elastic branch: twice the pull, twice the force,
+    within 1 %) and below mu N. Once every point slides the friction force is mu N within
+    1 %. Each step's friction dissipation is positive and equals the work of the friction
+    forces over the step's displacement (the assembled friction residual dotted with it), and
+    the forces are those of the serial run on any number of processes."""
+    steps = _pulled_block(MPI.COMM_WORLD)
+    for s in steps:
+        print(
+            f"load {s['load']:.3f}: T {s['T']:+.6g} N {s['N']:.6g} T/(mu N) "
+            f"{s['T'] / (MU * s['N']):+.5f} dissipation {s['friction_dissipation']:.4g} "
+            f"work {s['work']:.4g} stick {s['stick_points']} slip {s['slip_points']} "
+            f"max ratio {s['max_traction_ratio']:.4f} iterations {s['iterations']}"
+        )
+    assert [s["load"] for s in steps] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]  # no cut
+    stick, slide = steps[1:3], [s for s in steps[3:] if s["stick_points"] == 0]
+    for s in stick:
+        assert s["slip_points"] == 0 and s["max_traction_ratio"] < 1.0
+        assert 0.0 < -s["T"] < MU * s["N"]
+    assert stick[1]["T"] / stick[0]["T"] == pytest.approx(PULL[1] / PULL[0], rel=0.01)
+    assert len(slide) >= 2
+    for s in slide:
+        assert -s["T"] == pytest.approx(MU * s["N"], rel=0.01)
+    for s in steps:
+        assert s["friction_dissipation"] >= 0.0
+        assert s["work"] == pytest.approx(s["friction_dissipation"], rel=1e-8, abs=1e-15)
+    measured = np.array([(s["T"], s["N"]) for s in steps])
+    assert np.allclose(measured, SERIAL_T_N, rtol=1e-4, atol=1e-9)

@@ -132,7 +132,9 @@ class FrictionMixin:
         self.slip_tol = 0.0
         if friction is not None:
             tol = friction.slip_tol
-            self.slip_tol = float(SLIP_TOL_FRACTION * self.surface.mean_edge if tol is None else tol)
+            self.slip_tol = float(
+                SLIP_TOL_FRACTION * self.surface.mean_edge if tol is None else tol
+            )
             self.advance()
 
     def advance(self) -> None:
@@ -168,9 +170,7 @@ class FrictionMixin:
         counts = np.bincount(qpair, minlength=pa.size)
         keep = counts > 0
         qptr = np.concatenate(([0], np.cumsum(counts[keep]))).astype(INDEX)
-        self._friction_ref = _Reference(
-            glob[keep], s.x[verts[keep]], qptr, coef, normal, weight
-        )
+        self._friction_ref = _Reference(glob[keep], s.x[verts[keep]], qptr, coef, normal, weight)
         self._friction_held = None
         for key in [k for k in self._cache if k.startswith("friction")]:
             del self._cache[key]

@@ -213,7 +213,7 @@ def friction_pairs(x, verts, xref, qptr, coef, normal, weight, slip_tol, want_gr
         for q in range(qptr[p], qptr[p + 1]):
             y = _slip(x, verts, xref, coef, normal, p, q, s)
             c = weight[q]
-            f0, f1, f1y = _mollified(y, e)
+            f0, _, f1y = _mollified(y, e)
             energy[p] += c * f0
             if not (want_grad or want_hess):
                 continue
@@ -253,7 +253,7 @@ def friction_points(x, verts, xref, qptr, coef, normal, weight, slip_tol):
     for p in range(verts.shape[0]):
         for q in range(qptr[p], qptr[p + 1]):
             y = _slip(x, verts, xref, coef, normal, p, q, s)
-            f0, f1, f1y = _mollified(y, slip_tol)
+            _, f1, f1y = _mollified(y, slip_tol)
             slip[q] = y
             ratio[q] = f1
             for r in range(3):
