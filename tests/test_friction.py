@@ -64,7 +64,7 @@ def _one_pair(depth: np.ndarray, split: bool, penalty: float = 40.0, mu: float =
     nq = friction_reference(*args, False, *empty_reference())
     qpair = np.empty(nq, dtype=np.int32)
     coef, normal, weight = np.empty((nq, 7)), np.empty((nq, 3)), np.empty(nq)
-    assert friction_reference(*args, True, qpair, coef, normal, weight) == nq
+    assert friction_reference(*args, True, qpair, coef, normal, weight, np.empty(nq)) == nq
     return x0, np.array([0, nq], dtype=np.int32), coef, normal, weight
 
 
@@ -103,7 +103,7 @@ def test_pair_derivatives_match_finite_differences(case):
         energy, grad, hess = f(z0)
     else:
         energy, grad, hess = assert_fd_derivatives(f, z0, rtol=1e-6, symmetric=True)
-    slip, ratio, _ = friction_points(x0 + du, verts, x0[None], qptr, coef, normal, weight, tol)
+    slip, ratio, _, _ = friction_points(x0 + du, verts, x0[None], qptr, coef, normal, weight, tol)
     if case == "stick_and_slip" or split:
         assert np.any(slip < tol) and np.any(slip > tol)  # both branches of the mollifier
     if case in ("at_rest", "normal_motion_only"):
@@ -215,6 +215,15 @@ def _pulled_block(comm: MPI.Comm) -> list[dict]:
         b_friction = b_all - b_normal
         du = u.x.array[: 3 * n_owned] - last["u"]
         last["u"] = u.x.array[: 3 * n_owned].copy()
+        if load == len(table) - 1.0:  # the last (sliding) step: the fields, on u's space
+            fields = contact.fields()
+            for name in ("pressure", "penetration", "status"):
+                carrier = dolfinx.fem.Function(V)
+                carrier.sub(0).interpolate(fields[name])
+                fields[name] = carrier.x.array.reshape(-1, 3)[:n_owned, 0].copy()
+            for name in ("traction", "slip"):
+                fields[name] = fields[name].x.array.reshape(-1, 3)[:n_owned].copy()
+            last["fields"] = fields
         steps.append({
             "load": load,
             "T": -comm.allreduce(float(b_friction[on_block, 0].sum())),
@@ -227,10 +236,22 @@ def _pulled_block(comm: MPI.Comm) -> list[dict]:
         problem, set_load, num_steps=len(table) - 1, end=len(table) - 1.0, writer=measure,
         progress=False,
     )  # fmt: skip
-    return [
+    out = [
         {**s, **r.diagnostics, "iterations": r.iterations}
         for s, r in zip(steps, records, strict=True)
     ]
+    bottom = on_block & np.isclose(z, 0.5)  # the block's face on the slab
+    return out, {name: values[bottom] for name, values in last["fields"].items()}
+
+
+_PULLED: dict = {}
+
+
+def _pulled_block_once() -> tuple[list[dict], dict]:
+    """:func:`_pulled_block` on COMM_WORLD, solved once for the tests that look at it."""
+    if not _PULLED:
+        _PULLED["run"] = _pulled_block(MPI.COMM_WORLD)
+    return _PULLED["run"]
 
 
 #: T and N of each step as measured serially (DOLFINx 0.9): any partition gives them
@@ -247,7 +268,7 @@ def test_block_pulled_over_a_plane_sticks_then_slides_at_mu_n():
     1 %. Each step's friction dissipation is positive and equals the work of the friction
     forces over the step's displacement (the assembled friction residual dotted with it), and
     the forces are those of the serial run on any number of processes."""
-    steps = _pulled_block(MPI.COMM_WORLD)
+    steps, _ = _pulled_block_once()
     for s in steps:
         print(
             f"load {s['load']:.3f}: T {s['T']:+.6g} N {s['N']:.6g} T/(mu N) "
@@ -269,3 +290,22 @@ def test_block_pulled_over_a_plane_sticks_then_slides_at_mu_n():
         assert s["work"] == pytest.approx(s["friction_dissipation"], rel=1e-8, abs=1e-15)
     measured = np.array([(s["T"], s["N"]) for s in steps])
     assert np.allclose(measured, SERIAL_T_N, rtol=1e-4, atol=1e-9)
+
+
+def test_contact_fields_of_the_sliding_block():
+    """fields() on the block's face in its last, sliding step: every vertex slips (status 2),
+    by the step's pull along x (within 2 %: the block moves rigidly over the slab); the
+    traction's normal part is the pressure (within 5 %, the face stays flat) and its
+    tangential part opposes the slip at mu times the pressure (within 10 % per vertex: the
+    friction's pressure is lagged by one step, and near the edges the depth's gradient
+    bends)."""
+    _, f = _pulled_block_once()
+    comm = MPI.COMM_WORLD
+    f = {k: np.concatenate(comm.allgather(v)) for k, v in f.items()}
+    assert f["status"].size == 25 and np.all(f["status"] == 2)  # 5 x 5 vertices
+    p, t, slip = f["pressure"], f["traction"], f["slip"]
+    assert np.all(p > 0.0) and np.all(f["penetration"] > 0.0)
+    assert np.allclose(slip[:, 0], PULL[-1] - PULL[-2], rtol=0.02)
+    assert np.abs(slip[:, 1:]).max() < 0.05 * (PULL[-1] - PULL[-2])
+    assert np.allclose(t[:, 2], p, rtol=0.05)
+    assert np.allclose(-t[:, 0] / p, MU, rtol=0.1)

@@ -21,6 +21,7 @@ import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact import assembly
+from fenics_matdepth.contact.fields import contact_fields
 from fenics_matdepth.contact.kernels.friction import (
     empty_reference,
     friction_pairs,
@@ -29,6 +30,8 @@ from fenics_matdepth.contact.kernels.friction import (
 )
 
 __all__ = ["Coulomb", "FrictionMixin"]
+
+_POINT_KEYS = ("coef", "normal", "weight", "area")
 
 #: the default slip tolerance, as a fraction of the mean boundary edge length
 SLIP_TOL_FRACTION = 1e-3
@@ -112,6 +115,7 @@ class _Reference(typing.NamedTuple):
     coef: np.ndarray  #: (nq, 7)
     normal: np.ndarray  #: (nq, 3)
     weight: np.ndarray  #: (nq,)
+    area: np.ndarray  #: (nq,)
 
 
 class FrictionMixin:
@@ -137,21 +141,30 @@ class FrictionMixin:
             )
             self.advance()
 
-    def advance(self) -> None:
-        """Make the current state of ``u`` the friction's reference (collective): the normal
-        pressures, contact normals and quadrature points of the next step's friction are
-        taken here, and its slip is measured from here. ``solve_load_steps`` and
-        ``solve_time_steps`` call it after every converged step; call it after each converged
-        step of a loop of your own (nothing happens without friction)."""
-        if self.friction is None:
-            return
-        self.update()
+    def _contact_points(self, friction: bool = False) -> dict[str, np.ndarray]:
+        """The quadrature points of this rank's intersection polygons at the last update where
+        the normal traction is positive (see ``kernels.friction``; the points the friction
+        is integrated at).
+
+        Args:
+            friction: weigh each point by its pair's friction coefficient (pairs with 0 get no
+                points); else by 1.
+
+        Returns:
+            ``verts`` (np, 7) and ``x`` (np, 7, 3): the global vertex numbers and current
+            coordinates of every evaluated pair (triangle then tetrahedron), and per point
+            ``pair`` (its row), ``coef`` (7: the triangle's barycentrics, then minus the
+            tetrahedron's), ``normal`` (the unit contact normal, ``grad g`` over its length),
+            ``weight`` (``w p`` times the coefficient: force) and ``area`` (``w``, L^2).
+        """
         s = self.surface
         pa, pk = self._evaluated_pairs()
         verts = np.hstack((s.tri[pa], s.tets[pk]))
         glob = s.global_vertex[verts]
-        body = s.body_of_vertex
-        scale = self.friction.pair_mu(body[glob[:, 0]], body[glob[:, 3]])
+        scale = np.ones(pa.size, dtype=FLOAT)
+        if friction:
+            body = s.body_of_vertex
+            scale = self.friction.pair_mu(body[glob[:, 0]], body[glob[:, 3]])
         stiffness = np.full(pa.size, self.penalty, dtype=FLOAT)
         offset = np.zeros((pa.size, 3), dtype=FLOAT)
         if self._pressure is not None:
@@ -162,15 +175,34 @@ class FrictionMixin:
                 offset[:] = corner
         args = (s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, stiffness, offset, scale)
         nq = friction_reference(*args, False, *empty_reference())
-        qpair = np.empty(nq, dtype=INDEX)
-        coef = np.empty((nq, 7), dtype=FLOAT)
-        normal = np.empty((nq, 3), dtype=FLOAT)
-        weight = np.empty(nq, dtype=FLOAT)
-        friction_reference(*args, True, qpair, coef, normal, weight)
-        counts = np.bincount(qpair, minlength=pa.size)
+        out = {
+            "verts": glob,
+            "x": s.x[verts],
+            "pair": np.empty(nq, dtype=INDEX),
+            "coef": np.empty((nq, 7), dtype=FLOAT),
+            "normal": np.empty((nq, 3), dtype=FLOAT),
+            "weight": np.empty(nq, dtype=FLOAT),
+            "area": np.empty(nq, dtype=FLOAT),
+        }
+        friction_reference(*args, True, out["pair"], *(out[k] for k in _POINT_KEYS))
+        return out
+
+    def advance(self) -> None:
+        """Make the current state of ``u`` the friction's reference (collective): the normal
+        pressures, contact normals and quadrature points of the next step's friction are
+        taken here, and its slip is measured from here. ``solve_load_steps`` and
+        ``solve_time_steps`` call it after every converged step; call it after each converged
+        step of a loop of your own (nothing happens without friction)."""
+        if self.friction is None:
+            return
+        self.update()
+        pts = self._contact_points(friction=True)
+        counts = np.bincount(pts["pair"], minlength=pts["verts"].shape[0])
         keep = counts > 0
         qptr = np.concatenate(([0], np.cumsum(counts[keep]))).astype(INDEX)
-        self._friction_ref = _Reference(glob[keep], s.x[verts[keep]], qptr, coef, normal, weight)
+        self._friction_ref = _Reference(
+            pts["verts"][keep], pts["x"][keep], qptr, *(pts[k] for k in _POINT_KEYS)
+        )
         self._friction_held = None
         for key in [k for k in self._cache if k.startswith("friction")]:
             del self._cache[key]
@@ -197,6 +229,7 @@ class FrictionMixin:
                 "coef": np.ascontiguousarray(ref.coef[pts]),
                 "normal": np.ascontiguousarray(ref.normal[pts]),
                 "weight": np.ascontiguousarray(ref.weight[pts]),
+                "area": ref.area[pts],
             }
             self._friction_held = (s.refreshes, data)
         return self._friction_held[1]
@@ -270,6 +303,28 @@ class FrictionMixin:
 
     # -- diagnostics ----------------------------------------------------------------------------
 
+    def fields(self) -> dict[str, typing.Any]:
+        """The contact state at the last update as DOLFINx P1 Functions, for VTX/XDMF files
+        and pyvista (collective; area integration; see :mod:`fenics_matdepth.contact.fields`):
+
+        - ``pressure`` (F/L^2): the normal traction ``(eps g + p_aug) |grad g|`` averaged on
+          each boundary vertex's hat function over the boundary triangles around it;
+        - ``penetration`` (L): :meth:`vertex_penetration`;
+        - ``traction`` (F/L^2, vector): the contact traction on the surface, normal plus
+          friction, averaged the same way;
+        - ``slip`` (L, vector): the slip of the surface relative to the body it is in since the
+          friction's reference (area-weighted over the friction points at the vertex; 0
+          without friction);
+        - ``status``: 0 open, 1 stick, 2 slip (a vertex slips where most of its friction
+          points' slip exceeds the slip tolerance; frictionless contact always slips).
+
+        Scalars live on a collapsed component space of ``u``'s space, vectors on it; each
+        Function is named after its key.
+        """
+        if self.integration != "area":
+            raise ValueError("contact fields need integration='area'")
+        return contact_fields(self)
+
     def friction_diagnostics(self) -> dict[str, typing.Any]:
         """The friction of the step at the last update (collective; empty without friction).
 
@@ -281,7 +336,7 @@ class FrictionMixin:
         """
         if self._friction_ref is None:
             return {}
-        slip, ratio, _ = self._friction_point_state()
+        slip, ratio, _, _ = self._friction_point_state()
         weight = self._friction_held_data()["weight"]
         sticking = int(np.count_nonzero(slip < self.slip_tol))
         comm = self.comm
@@ -294,9 +349,9 @@ class FrictionMixin:
             ),
         }
 
-    def _friction_point_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _friction_point_state(self) -> tuple[np.ndarray, ...]:
         """Per point of the held reference pairs: slip length, traction ratio, tangential
-        force on the triangle's side (see ``kernels.friction.friction_points``)."""
+        force on the triangle's side, slip vector (see ``kernels.friction.friction_points``)."""
         d = self._friction_held_data()
         return friction_points(
             self.surface.x, d["verts"], d["xref"], d["qptr"], d["coef"], d["normal"],

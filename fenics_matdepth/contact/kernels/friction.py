@@ -63,7 +63,7 @@ def _barycentrics(grads, x0, y, out):
 @njit(cache=True, fastmath=FMA)
 def friction_reference(
     x, depth, tri, tet, pair_tri, pair_tet, stiffness, offset, scale, fill, qpair, coef,
-    normal, weight,
+    normal, weight, area,
 ):  # fmt: skip
     """The quadrature points of the pairs' friction at the state ``x`` (the reference).
 
@@ -80,6 +80,7 @@ def friction_reference(
             ``sum_a coef[a] du_a`` over the pair's 7 vertices.
         normal: (nq, 3) the contact normal.
         weight: (nq,) ``c_q = w_q mu p_q`` (force: area times pressure).
+        area: (nq,) ``w_q`` (L^2).
 
     Returns:
         The number of points (those with a positive normal traction).
@@ -155,6 +156,7 @@ def friction_reference(
                         for r in range(3):
                             normal[count, r] = nrm[r]
                         weight[count] = w * scale[p] * press
+                        area[count] = w
                     count += 1
     return count
 
@@ -242,13 +244,15 @@ def friction_pairs(x, verts, xref, qptr, coef, normal, weight, slip_tol, want_gr
 
 @njit(cache=True, fastmath=FMA)
 def friction_points(x, verts, xref, qptr, coef, normal, weight, slip_tol):
-    """Per point: the slip length ``y`` (L), the ratio ``f1(y) = |t_T| / (mu p)`` and the
-    tangential force ``c f1(y) s / y`` on the triangle's side (F; points of pairs of
-    ``verts``, the arguments as `friction_pairs`)."""
+    """Per point: the slip length ``y`` (L), the ratio ``f1(y) = |t_T| / (mu p)``, the
+    tangential force ``-c f1(y) s / y`` on the triangle's side (F) and the slip vector ``s``
+    of the triangle's point relative to the tetrahedron's (L) (points of pairs of ``verts``,
+    the arguments as `friction_pairs`)."""
     nq = coef.shape[0]
     slip = np.zeros(nq, dtype=FLOAT)
     ratio = np.zeros(nq, dtype=FLOAT)
     force = np.zeros((nq, 3), dtype=FLOAT)
+    vector = np.zeros((nq, 3), dtype=FLOAT)
     s = np.empty(3, dtype=FLOAT)
     for p in range(verts.shape[0]):
         for q in range(qptr[p], qptr[p + 1]):
@@ -258,14 +262,16 @@ def friction_points(x, verts, xref, qptr, coef, normal, weight, slip_tol):
             ratio[q] = f1
             for r in range(3):
                 force[q, r] = -weight[q] * f1y * s[r]
-    return slip, ratio, force
+                vector[q, r] = s[r]
+    return slip, ratio, force, vector
 
 
 def empty_reference() -> tuple[np.ndarray, ...]:
-    """Zero-size point arrays (qpair, coef, normal, weight) for a counting pass."""
+    """Zero-size point arrays (qpair, coef, normal, weight, area) for a counting pass."""
     return (
         np.empty(0, dtype=INDEX),
         np.empty((0, 7), dtype=FLOAT),
         np.empty((0, 3), dtype=FLOAT),
+        np.empty(0, dtype=FLOAT),
         np.empty(0, dtype=FLOAT),
     )
