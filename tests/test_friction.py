@@ -309,3 +309,98 @@ def test_contact_fields_of_the_sliding_block():
     assert np.abs(slip[:, 1:]).max() < 0.05 * (PULL[-1] - PULL[-2])
     assert np.allclose(t[:, 2], p, rtol=0.05)
     assert np.allclose(-t[:, 0] / p, MU, rtol=0.1)
+
+
+# -- a block on an incline under gravity (dynamics) --------------------------------------------
+
+RHO, YOUNGS, GRAVITY, SLIP_TOL = 1.0, 1.0e3, 10.0, 5e-5
+
+
+def _block_on_incline(comm: MPI.Comm, tan_theta: float, t_end: float = 0.4, dt: float = 0.02):
+    """The block of :func:`_pulled_block` resting on the clamped slab, gravity tilted by theta
+    from -z towards +x (the incline), average-acceleration Newmark from rest, the block sunk
+    by the penetration that carries its weight. Returns the times, the block's mean x velocity
+    and the number of slipping friction points of each step."""
+    mesh = merged_mesh(
+        comm,
+        box_tetrahedra((6, 6, 2), (0.0, 0.0, 0.0), (1.5, 1.5, 0.5)),
+        box_tetrahedra((4, 4, 2), (0.3, 0.45, 0.5), (0.6, 0.6, 0.4)),
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    v = ufl.TestFunction(V)
+    elastic, psi = neo_hookean_residual(u, YOUNGS, 0.3)
+    theta = np.arctan(tan_theta)
+    g = ufl.as_vector((GRAVITY * np.sin(theta), 0.0, -GRAVITY * np.cos(theta)))
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    bcs = [
+        dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, bottom), V)
+    ]
+    eps = fm.propose_penalty(mesh, YOUNGS)
+    law = fm.Coulomb(MU, slip_tol=SLIP_TOL)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=eps, friction=law)
+    integrator = fm.BackwardEuler(u, dt, rho=RHO)
+    residual = integrator.inertia(v) + elastic - RHO * ufl.inner(g, v) * ufl.dx
+    n_owned = V.dofmap.index_map.size_local
+    lo = V.dofmap.index_map.local_range[0]
+    body = contact.body_of_vertex[lo + np.arange(n_owned)]
+    X = V.tabulate_dof_coordinates()
+    block = comm.allreduce(int(body[X[:n_owned, 2] > 0.6].max()) if n_owned else -1, op=MPI.MAX)
+    # both faces enter the other body: each carries half the weight's pressure
+    sink = RHO * 0.4 * GRAVITY * np.cos(theta) / (2.0 * eps)
+    on_block = (
+        contact.body_of_vertex[
+            V.dofmap.index_map.local_to_global(np.arange(X.shape[0], dtype=np.int32))
+        ]
+        == block
+    )
+    u0 = np.zeros((X.shape[0], 3))
+    u0[on_block, 2] = -sink
+    integrator.initial(u0.ravel(), None, residual=residual, contact=contact, bcs=bcs)
+    energy = integrator.incremental_energy(psi * ufl.dx - RHO * ufl.inner(g, u) * ufl.dx)
+    problem = fm.ContactProblem(
+        residual, u, contact, bcs=bcs, energy=energy, petsc_options_prefix="incline_"
+    )
+    mass = dolfinx.fem.form(RHO * ufl.inner(ufl.TrialFunction(V), v) * ufl.dx)
+    M = dolfinx.fem.petsc.assemble_matrix(mass)
+    M.assemble()
+    p = M.createVecLeft()
+    times, momentum, slipping = [], [], []
+
+    def track(record):
+        M.mult(integrator.v_prev.x.petsc_vec, p)
+        times.append(record.t)
+        slipping.append(record.diagnostics["slip_points"])
+        momentum.append(comm.allreduce(float(p.array_r.reshape(-1, 3)[body == block, 0].sum())))
+
+    fm.solve_time_steps(problem, integrator, t_end, dt, on_step=track, progress=False)
+    M.destroy()
+    p.destroy()
+    return np.array(times), np.array(momentum) / (RHO * 0.6 * 0.6 * 0.4), np.array(slipping)
+
+
+@pytest.mark.parametrize("tan_theta", [0.2, 0.5])
+def test_block_on_an_incline_sticks_or_slides_with_coulombs_acceleration(tan_theta):
+    """A stiff block (E = 1e4, so it moves nearly rigidly) released on an incline, backward
+    Euler (its velocity update is exact for a constant acceleration, and it damps the contact's
+    and the block's vibrations). For tan theta > mu it slides with the acceleration
+    g (sin theta - mu cos theta): the slope of its velocity over the last half of the run within
+    2 %. For tan theta < mu it sticks: once the block's shear vibration from the release has
+    died out (the second half of the run), no friction point slips by more than the slip
+    tolerance in a step, and the block's velocity is below 1 % of what it would reach without
+    friction."""
+    t, velocity, slipping = _block_on_incline(MPI.COMM_WORLD, tan_theta)
+    theta = np.arctan(tan_theta)
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"tan theta {tan_theta}: {t.size} steps, block velocity {velocity}, slipping "
+              f"points {slipping}")  # fmt: skip
+    if tan_theta > MU:
+        expected = GRAVITY * (np.sin(theta) - MU * np.cos(theta))
+        late = t >= 0.5 * t[-1]
+        slope = np.polyfit(t[late], velocity[late], 1)[0]
+        assert slope == pytest.approx(expected, rel=0.02)
+    else:
+        late = t >= 0.5 * t[-1]
+        free = GRAVITY * np.sin(theta) * t[-1]
+        assert np.all(slipping[late] == 0)
+        assert np.abs(velocity[late]).max() < 0.01 * free
