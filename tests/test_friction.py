@@ -345,7 +345,8 @@ def _block_on_incline(comm: MPI.Comm, tan_theta: float, t_end: float = 0.4, dt: 
     lo = V.dofmap.index_map.local_range[0]
     body = contact.body_of_vertex[lo + np.arange(n_owned)]
     X = V.tabulate_dof_coordinates()
-    block = comm.allreduce(int(body[X[:n_owned, 2] > 0.6].max()) if n_owned else -1, op=MPI.MAX)
+    top = body[X[:n_owned, 2] > 0.6]
+    block = comm.allreduce(int(top.max()) if top.size else -1, op=MPI.MAX)
     # both faces enter the other body: each carries half the weight's pressure
     sink = RHO * 0.4 * GRAVITY * np.cos(theta) / (2.0 * eps)
     on_block = (
