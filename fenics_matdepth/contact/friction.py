@@ -326,7 +326,8 @@ class FrictionMixin:
         return contact_fields(self)
 
     def friction_diagnostics(self) -> dict[str, typing.Any]:
-        """The friction of the step at the last update (collective; empty without friction).
+        """The friction of the step at the last update (collective; empty without friction;
+        :meth:`diagnostics` includes it, and so the records of the stepping loops).
 
         Returns:
             ``friction_dissipation``: ``sum_q c_q f1(y_q) y_q``, the work of the friction
