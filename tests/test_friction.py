@@ -160,6 +160,30 @@ def test_operator_friction_derivatives_match_finite_differences():
     assert op.energy() < e_before
 
 
+def test_friction_takes_the_augmented_lagrangians_pressure():
+    """With the augmented Lagrangian's nodal pressures P the friction's normal traction is
+    ``(eps g + P) |grad g|``: the friction force of a sliding state is affine in a uniform P,
+    and larger with it; with the quadratic pressure term (width w) the penalty is
+    ``eps + P / w``, so P = w eps doubles the force of P = 0."""
+    comm = MPI.COMM_WORLD
+    V, u, op = _two_boxes_with_friction(comm, fm.Coulomb(0.4, slip_tol=1e-6))
+    x = V.tabulate_dof_coordinates()
+    slide = (0.05 * np.sin([3.1, 2.3, 1.7] * x + np.array([0.3, 0.1, 0.7]))).ravel()
+
+    def friction_force(pressure, width=0.0):
+        u.x.array[:] = 0.0
+        op.set_pressure(np.full(op.num_vertices, pressure), width)
+        op.advance()
+        u.x.array[:] = slide
+        op.update()
+        return op.friction_diagnostics()["friction_dissipation"]
+
+    f0, f1, f2 = friction_force(0.0), friction_force(1.0), friction_force(2.0)
+    assert f1 > f0 > 0.0 and f2 - f1 == pytest.approx(f1 - f0, rel=1e-9)
+    width = 0.01
+    assert friction_force(width * op.penalty, width) == pytest.approx(2.0 * f0, rel=1e-9)
+
+
 # -- a block pulled over a plane ---------------------------------------------------------------
 
 #: the block's top: pressed down by PRESS, then pulled along x to PULL[i] in the steps after
