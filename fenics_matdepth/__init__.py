@@ -32,6 +32,7 @@ from fenics_matdepth.augmented import (
     damping_energy,
 )
 from fenics_matdepth.checkpoint import Checkpoint
+from fenics_matdepth.contact.friction import Coulomb
 from fenics_matdepth.contact.operator import ContactOperator, propose_penalty
 from fenics_matdepth.contact.surface import DepthDeficiencyWarning
 from fenics_matdepth.continuation import ContinuationStage, PenaltyContinuation
@@ -51,6 +52,7 @@ __all__ = [
     "ContactOperator",
     "ContactProblem",
     "ContinuationStage",
+    "Coulomb",
     "DepthDeficiencyWarning",
     "FreeBody",
     "FreeBodyDamping",

@@ -180,6 +180,15 @@ class StepEngine:
         except (RuntimeError, FloatingPointError, PETSc.Error) as err:
             return str(err)
 
+    def advance_friction(self) -> None:
+        """Make the current state the reference of the contact's friction (the start, then each
+        converged step, after its record, writer and ``on_step`` saw it): the next step's
+        friction slips from here. A cut goes back to the last converged state, which stays the
+        reference."""
+        advance = getattr(getattr(self.problem, "contact", None), "advance", None)
+        if advance is not None:
+            advance()
+
     def run(self) -> list:
         """The steps to the end (collective). Returns the records."""
         self.reporter = StepProgress(
@@ -187,6 +196,7 @@ class StepEngine:
         )
         try:
             self.started()
+            self.advance_friction()
             while not self.finished():
                 self.begin_step()
                 cuts, tic = 0, time.perf_counter()
@@ -203,6 +213,7 @@ class StepEngine:
                 if self.on_step is not None:
                     self.on_step(record)
                 self.reporter.step(self.reached(), self.line(record))
+                self.advance_friction()
                 self.grow(cuts)
                 self.save()
         except StopRequested as err:

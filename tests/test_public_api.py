@@ -20,7 +20,7 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 PUBLIC = {
     # the model: depth, operator, penalty
     "material_depth", "depth_deficiency", "DepthDeficiencyWarning", "ContactOperator",
-    "propose_penalty",
+    "propose_penalty", "Coulomb",
     # problems and their results
     "SystemAssembler", "ContactProblem", "NonlinearContactProblem", "rigid_body_modes",
     "solve_nonlinear", "SolveResult", "Solvable",

@@ -37,6 +37,7 @@ from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._jit import announces_compilation
 from fenics_matdepth.contact import assembly, diagnostics, evaluation, pairs
 from fenics_matdepth.contact.checks import check_contact_state
+from fenics_matdepth.contact.friction import Coulomb, FrictionMixin
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.depth import DepthDeficiency
 from fenics_matdepth.mesh_checks import check_contact_mesh
@@ -46,7 +47,7 @@ __all__ = ["ContactOperator", "DepthDeficiencyWarning", "propose_penalty"]
 _INTEGRATIONS = ("area", "collocation")
 
 
-class ContactOperator:
+class ContactOperator(FrictionMixin):
     """Material-depth penalty contact energy of the displacement ``u`` and its derivatives.
 
     Args:
@@ -69,6 +70,9 @@ class ContactOperator:
             which a surface entering such a tetrahedron passes without force.
         allow_reference_overlap: accept bodies that overlap in the reference configuration
             (by default a ``ValueError``: their material depth is wrong).
+        friction: ``fm.Coulomb(mu, slip_tol)`` for Coulomb friction over the intersection
+            polygons (area integration; see :mod:`fenics_matdepth.contact.friction`), or None.
+            Its reference state is ``u`` now; :meth:`advance` moves it on.
 
     Typical use in a Newton loop: ``update()`` at each iterate, then ``add_residual(b)`` and
     ``add_jacobian(A, bcs)`` after dolfinx has assembled the bulk terms into ``b`` and ``A``;
@@ -85,6 +89,7 @@ class ContactOperator:
         margin: float | None = None,
         split_deficient: bool = True,
         allow_reference_overlap: bool = False,
+        friction: Coulomb | None = None,
     ):
         V = u.function_space
         mesh = V.mesh
@@ -133,6 +138,7 @@ class ContactOperator:
         # the surface holds, until the first update, what its triangles meet at u = 0
         check_contact_state(s, allow_reference_overlap)
         self.update()
+        self._init_friction(friction)
 
     @property
     def penalty(self) -> float:
@@ -298,14 +304,14 @@ class ContactOperator:
         return self._cache["intersecting"]
 
     def energy(self) -> float:
-        """Contact energy at the last :meth:`update` (collective; energy unit F L)."""
+        """Contact energy plus friction potential at the last :meth:`update` (collective; F L)."""
         if self._sums_fused():
             # with the gradient: a line search asks for the energy at the state whose residual
             # comes next, which then costs nothing (the energy alone is about 2/3 of the cost)
             r = self._summed(want_hess=False)
         else:
             r = self._evaluate(False, False)
-        return self.comm.allreduce(float(np.sum(r["energy"])))
+        return self.comm.allreduce(float(np.sum(r["energy"])) + self._friction_energy())
 
     def gradient_array(self) -> tuple[np.ndarray, np.ndarray]:
         """This rank's gradient contributions: (global dofs, values), duplicates summed."""
@@ -324,6 +330,7 @@ class ContactOperator:
         """
         dofs, vals = self.gradient_array()
         b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
+        self._add_friction_residual(b)
         b.assemblyBegin()
         b.assemblyEnd()
 
@@ -421,6 +428,7 @@ class ContactOperator:
         else:
             r = self._evaluate(False, True)
             assembly.add_jacobian_blocks(A, self.surface, keys, pos, r["verts"], r["hess"])
+        self._add_friction_jacobian(A)
         A.assemble()
 
     # -- sparsity ---------------------------------------------------------------------------
@@ -432,7 +440,7 @@ class ContactOperator:
         that asks before assembling does not pay again inside :meth:`add_jacobian`.
         """
         self._coupling_positions()
-        return self._cache["pattern_missing"]
+        return self._cache["pattern_missing"] or self._friction_outside_pattern()
 
     def _coupling_positions(self) -> np.ndarray:
         """The pattern index of every vertex coupling of the current pairs (see
@@ -470,6 +478,7 @@ class ContactOperator:
                 conditions only: a nonzero in a Dirichlet row or column raises.
         """
         self._pattern_keys = pairs.pattern_keys(self.surface, self.integration, self.margin)
+        self._pattern_keys = self._with_friction_keys(self._pattern_keys)
         self._held_keys = None
         self._cache.pop("pattern_missing", None)
         self._cache.pop("positions", None)
@@ -640,6 +649,7 @@ class ContactOperator:
             "max_penetration": self.max_penetration(),
             "force_resultant": self.force_resultants(),
             **self.surface.sizes(),
+            **self.friction_diagnostics(),
         }
 
 

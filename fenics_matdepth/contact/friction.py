@@ -1,0 +1,360 @@
+"""Coulomb friction of the contact operator: the law (:class:`Coulomb`) and the operator's
+lagged friction potential (:class:`FrictionMixin`).
+
+Each step's friction is a potential of the displacement since the last converged state (the
+reference), at normal pressures, contact normals and quadrature points lagged from it
+(``kernels.friction``): a Newton solve of the step minimises the elastic and contact energies
+plus that potential, with exact derivatives, and the energy line search keeps working.
+:meth:`FrictionMixin.advance` makes the current state the reference; the stepping loops call
+it after every converged step. A failed or cut step goes back to the last converged state,
+which is the reference still: nothing else is restored.
+"""
+
+from __future__ import annotations
+
+import typing
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import numpy as np
+
+from fenics_matdepth._constants import FLOAT, INDEX
+from fenics_matdepth.contact import assembly
+from fenics_matdepth.contact.fields import contact_fields
+from fenics_matdepth.contact.kernels.friction import (
+    empty_reference,
+    friction_pairs,
+    friction_points,
+    friction_reference,
+)
+
+__all__ = ["Coulomb", "FrictionMixin"]
+
+_POINT_KEYS = ("coef", "normal", "weight", "area")
+
+#: the default slip tolerance, as a fraction of the mean boundary edge length
+SLIP_TOL_FRACTION = 1e-3
+
+
+def _check_mu(value: typing.Any, what: str) -> float:
+    try:
+        mu = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number >= 0, got {value!r}") from None
+    if not (np.isfinite(mu) and mu >= 0.0):
+        raise ValueError(f"{what} must be a number >= 0, got {value!r}")
+    return mu
+
+
+class Coulomb:
+    """Coulomb friction: the tangential traction bounded by ``mu`` times the contact pressure.
+
+    Args:
+        mu: the friction coefficient (dimensionless, >= 0), or a dict ``{(a, b): mu}`` by pair
+            of body indices (the operator's ``body_of_vertex``; order within a key does not
+            matter, ``(a, a)`` is a body's self-contact), with ``default`` for the pairs of
+            bodies it does not name.
+        slip_tol: the slip tolerance e (L): below a slip of e per step the traction grows
+            smoothly from 0 to ``mu p`` (IPC's mollifier ``f1(y) = 2 y / e - y^2 / e^2``), so a
+            sticking point creeps by less than e per step. Default: 1e-3 times the mean
+            boundary edge length. In dynamics, ``e = eps_v dt`` for a velocity tolerance
+            ``eps_v``.
+        default: the coefficient of the pairs of bodies a dict ``mu`` does not name.
+    """
+
+    def __init__(
+        self,
+        mu: float | dict[tuple[int, int], float],
+        slip_tol: float | None = None,
+        default: float = 0.0,
+    ):
+        self.default = _check_mu(default, "default")
+        if isinstance(mu, dict):
+            table = {}
+            for key, value in mu.items():
+                if not (
+                    isinstance(key, tuple)
+                    and len(key) == 2
+                    and all(isinstance(b, (int, np.integer)) and b >= 0 for b in key)
+                ):
+                    raise ValueError(
+                        f"the keys of mu must be pairs of body indices (a, b), got {key!r}"
+                    )
+                table[(min(key), max(key))] = _check_mu(value, f"mu[{key!r}]")
+            self.mu: float | dict[tuple[int, int], float] = table
+        else:
+            self.mu = _check_mu(mu, "mu")
+        if slip_tol is not None:
+            slip_tol = float(slip_tol)
+            if not (np.isfinite(slip_tol) and slip_tol > 0.0):
+                raise ValueError(f"slip_tol must be a positive length, got {slip_tol}")
+        self.slip_tol = slip_tol
+
+    def __repr__(self) -> str:
+        return f"Coulomb(mu={self.mu!r}, slip_tol={self.slip_tol!r}, default={self.default!r})"
+
+    def pair_mu(self, body_a: np.ndarray, body_b: np.ndarray) -> np.ndarray:
+        """The coefficient of each pair of bodies ``(body_a[i], body_b[i])``."""
+        body_a, body_b = np.asarray(body_a), np.asarray(body_b)
+        if not isinstance(self.mu, dict):
+            return np.full(body_a.shape, self.mu, dtype=FLOAT)
+        out = np.full(body_a.shape, self.default, dtype=FLOAT)
+        lo, hi = np.minimum(body_a, body_b), np.maximum(body_a, body_b)
+        for (a, b), value in self.mu.items():
+            out[(lo == a) & (hi == b)] = value
+        return out
+
+
+class _Reference(typing.NamedTuple):
+    """The lagged data of a rank's friction pairs (see ``kernels.friction``)."""
+
+    verts: np.ndarray  #: (np, 7) global vertex numbers
+    xref: np.ndarray  #: (np, 7, 3) their reference coordinates
+    qptr: np.ndarray  #: (np + 1,) each pair's points
+    coef: np.ndarray  #: (nq, 7)
+    normal: np.ndarray  #: (nq, 3)
+    weight: np.ndarray  #: (nq,)
+    area: np.ndarray  #: (nq,)
+
+
+class FrictionMixin:
+    """The friction part of :class:`~fenics_matdepth.ContactOperator` (its state: ``surface``,
+    ``comm``, ``penalty``, the pair search and the cache of a state)."""
+
+    friction: Coulomb | None
+    slip_tol: float
+
+    def _init_friction(self, friction: Coulomb | None) -> None:
+        if friction is not None and not isinstance(friction, Coulomb):
+            raise TypeError(f"friction must be fm.Coulomb(mu, slip_tol) or None, got {friction!r}")
+        if friction is not None and self.integration != "area":
+            raise ValueError("friction needs integration='area'")
+        self.friction = friction
+        self._friction_ref: _Reference | None = None
+        self._friction_held: tuple[int, dict[str, np.ndarray]] | None = None
+        self.slip_tol = 0.0
+        if friction is not None:
+            tol = friction.slip_tol
+            self.slip_tol = float(
+                SLIP_TOL_FRACTION * self.surface.mean_edge if tol is None else tol
+            )
+            self.advance()
+
+    def _contact_points(self, friction: bool = False) -> dict[str, np.ndarray]:
+        """The quadrature points of this rank's intersection polygons at the last update where
+        the normal traction is positive (see ``kernels.friction``; the points the friction
+        is integrated at).
+
+        Args:
+            friction: weigh each point by its pair's friction coefficient (pairs with 0 get no
+                points); else by 1.
+
+        Returns:
+            ``verts`` (np, 7) and ``x`` (np, 7, 3): the global vertex numbers and current
+            coordinates of every evaluated pair (triangle then tetrahedron), and per point
+            ``pair`` (its row), ``coef`` (7: the triangle's barycentrics, then minus the
+            tetrahedron's), ``normal`` (the unit contact normal, ``grad g`` over its length),
+            ``weight`` (``w p`` times the coefficient: force) and ``area`` (``w``, L^2).
+        """
+        s = self.surface
+        pa, pk = self._evaluated_pairs()
+        verts = np.hstack((s.tri[pa], s.tets[pk]))
+        glob = s.global_vertex[verts]
+        scale = np.ones(pa.size, dtype=FLOAT)
+        if friction:
+            body = s.body_of_vertex
+            scale = self.friction.pair_mu(body[glob[:, 0]], body[glob[:, 3]])
+        stiffness = np.full(pa.size, self.penalty, dtype=FLOAT)
+        offset = np.zeros((pa.size, 3), dtype=FLOAT)
+        if self._pressure is not None:
+            corner = self._pressure[glob[:, :3]]
+            if self._pressure_width > 0.0:
+                stiffness += corner.mean(axis=1) / self._pressure_width
+            else:
+                offset[:] = corner
+        args = (s.x, s.kernel_depth, s.tri, s.kernel_tets, pa, pk, stiffness, offset, scale)
+        nq = friction_reference(*args, False, *empty_reference())
+        out = {
+            "verts": glob,
+            "x": s.x[verts],
+            "pair": np.empty(nq, dtype=INDEX),
+            "coef": np.empty((nq, 7), dtype=FLOAT),
+            "normal": np.empty((nq, 3), dtype=FLOAT),
+            "weight": np.empty(nq, dtype=FLOAT),
+            "area": np.empty(nq, dtype=FLOAT),
+        }
+        friction_reference(*args, True, out["pair"], *(out[k] for k in _POINT_KEYS))
+        return out
+
+    def advance(self) -> None:
+        """Make the current state of ``u`` the friction's reference (collective): the normal
+        pressures, contact normals and quadrature points of the next step's friction are
+        taken here, and its slip is measured from here. ``solve_load_steps`` and
+        ``solve_time_steps`` call it after every converged step; call it after each converged
+        step of a loop of your own (nothing happens without friction)."""
+        if self.friction is None:
+            return
+        self.update()
+        pts = self._contact_points(friction=True)
+        counts = np.bincount(pts["pair"], minlength=pts["verts"].shape[0])
+        keep = counts > 0
+        qptr = np.concatenate(([0], np.cumsum(counts[keep]))).astype(INDEX)
+        self._friction_ref = _Reference(
+            pts["verts"][keep], pts["x"][keep], qptr, *(pts[k] for k in _POINT_KEYS)
+        )
+        self._friction_held = None
+        for key in [k for k in self._cache if k.startswith("friction")]:
+            del self._cache[key]
+
+    # -- the potential at the current state ---------------------------------------------------
+
+    def _friction_held_data(self) -> dict[str, np.ndarray]:
+        """The reference pairs the rank holds all 7 vertices of, kept until the halo is
+        rebuilt: ``rows`` (rows of the reference), ``verts`` (their vertices in the held
+        numbering), ``xref`` and their points ``qptr``, ``coef``, ``normal``, ``weight``. A
+        pair leaves only when its vertices left the halo (a step far longer than the halo
+        margin)."""
+        s, ref = self.surface, self._friction_ref
+        if self._friction_held is None or self._friction_held[0] != s.refreshes:
+            held = s.held_index(ref.verts)
+            keep = np.all(held >= 0, axis=1)
+            counts = np.diff(ref.qptr)
+            pts = np.repeat(keep, counts)
+            data = {
+                "rows": np.flatnonzero(keep).astype(INDEX),
+                "verts": np.ascontiguousarray(held[keep]),
+                "xref": np.ascontiguousarray(ref.xref[keep]),
+                "qptr": np.concatenate(([0], np.cumsum(counts[keep]))).astype(INDEX),
+                "coef": np.ascontiguousarray(ref.coef[pts]),
+                "normal": np.ascontiguousarray(ref.normal[pts]),
+                "weight": np.ascontiguousarray(ref.weight[pts]),
+                "area": ref.area[pts],
+            }
+            self._friction_held = (s.refreshes, data)
+        return self._friction_held[1]
+
+    def _friction_pass(self, want_hess: bool) -> dict[str, np.ndarray] | None:
+        """The friction's per-pair energies, gradients and, with ``want_hess``, Hessians at the
+        last update, kept until the next one (None without friction)."""
+        if self._friction_ref is None:
+            return None
+        for key in ("friction_True", f"friction_{want_hess}"):
+            if key in self._cache:
+                return self._cache[key]
+        d = self._friction_held_data()
+        energy, grad, hess = friction_pairs(
+            self.surface.x, d["verts"], d["xref"], d["qptr"], d["coef"], d["normal"],
+            d["weight"], self.slip_tol, True, want_hess,
+        )  # fmt: skip
+        out = {"energy": energy, "grad": grad, "hess": hess, "verts": d["verts"]}
+        self._cache[f"friction_{want_hess}"] = out
+        return out
+
+    def _friction_energy(self) -> float:
+        """This rank's friction potential at the last update (0 without friction)."""
+        r = self._friction_pass(False)
+        return 0.0 if r is None else float(np.sum(r["energy"]))
+
+    def _add_friction_residual(self, b: PETSc.Vec) -> None:
+        """``b += dD/du`` (set, not yet assembled: the caller assembles ``b``)."""
+        r = self._friction_pass(False)
+        if r is None:
+            return
+        dofs, vals = assembly.gradient_array(self.surface, r["verts"], r["grad"])
+        b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
+
+    def _friction_positions(self) -> tuple[np.ndarray, bool]:
+        """Where the friction pairs' couplings lie in the pattern, and whether one lies outside
+        it on some rank (collective), kept until the next update."""
+        if "friction_positions" not in self._cache:
+            verts = self._friction_pass(False)["verts"]
+            pos, missing = assembly.coupling_positions(
+                self.surface, self._pattern_in_held_numbering(), verts, self._pattern_transposed()
+            )
+            outside = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
+            self._cache["friction_positions"] = (pos, outside)
+        return self._cache["friction_positions"]
+
+    def _friction_outside_pattern(self) -> bool:
+        """Whether a friction coupling lies outside the matrix pattern (collective)."""
+        return self._friction_ref is not None and self._friction_positions()[1]
+
+    def _add_friction_jacobian(self, A: PETSc.Mat) -> None:
+        """``A += d2D/du2`` into the pattern (not assembled here); Dirichlet rows and columns
+        left out."""
+        if self._friction_ref is None:
+            return
+        pos, _ = self._friction_positions()
+        r = self._friction_pass(True)
+        keys = self._pattern_in_held_numbering()
+        assembly.add_jacobian_blocks(A, self.surface, keys, pos, r["verts"], r["hess"])
+
+    def _with_friction_keys(self, keys: np.ndarray) -> np.ndarray:
+        """The pattern keys ``keys`` with the friction pairs' couplings (global numbering),
+        for a new matrix (whose pattern the friction's kept positions are not in)."""
+        self._cache.pop("friction_positions", None)
+        if self._friction_ref is None:
+            return keys
+        verts = self._friction_ref.verts
+        a = np.repeat(verts, 7, axis=1).ravel()
+        b = np.tile(verts, (1, 7)).ravel()
+        return np.union1d(keys, a * self.surface.num_vertices + b)
+
+    # -- diagnostics ----------------------------------------------------------------------------
+
+    def fields(self) -> dict[str, typing.Any]:
+        """The contact state at the last update as DOLFINx P1 Functions, for VTX/XDMF files
+        and pyvista (collective; area integration; see :mod:`fenics_matdepth.contact.fields`):
+
+        - ``pressure`` (F/L^2): the normal traction ``(eps g + p_aug) |grad g|`` averaged on
+          each boundary vertex's hat function over the boundary triangles around it;
+        - ``penetration`` (L): :meth:`vertex_penetration`;
+        - ``traction`` (F/L^2, vector): the contact traction on the surface, normal plus
+          friction, averaged the same way;
+        - ``slip`` (L, vector): the slip of the surface relative to the body it is in since the
+          friction's reference (area-weighted over the friction points at the vertex; 0
+          without friction);
+        - ``status``: 0 open, 1 stick, 2 slip (a vertex slips where most of its friction
+          points' slip exceeds the slip tolerance; frictionless contact always slips).
+
+        Scalars live on a collapsed component space of ``u``'s space, vectors on it; each
+        Function is named after its key.
+        """
+        if self.integration != "area":
+            raise ValueError("contact fields need integration='area'")
+        return contact_fields(self)
+
+    def friction_diagnostics(self) -> dict[str, typing.Any]:
+        """The friction of the step at the last update (collective; empty without friction;
+        :meth:`diagnostics` includes it, and so the records of the stepping loops).
+
+        Returns:
+            ``friction_dissipation``: ``sum_q c_q f1(y_q) y_q``, the work of the friction
+            forces over the slip since the reference (F L, >= 0); ``stick_points`` and
+            ``slip_points``: the quadrature points with slip below and above the slip
+            tolerance; ``max_traction_ratio``: the largest ``|t_T| / (mu p)`` (at most 1).
+        """
+        if self._friction_ref is None:
+            return {}
+        slip, ratio, _, _ = self._friction_point_state()
+        weight = self._friction_held_data()["weight"]
+        sticking = int(np.count_nonzero(slip < self.slip_tol))
+        comm = self.comm
+        return {
+            "friction_dissipation": comm.allreduce(float(np.sum(weight * ratio * slip))),
+            "stick_points": comm.allreduce(sticking),
+            "slip_points": comm.allreduce(int(slip.size) - sticking),
+            "max_traction_ratio": comm.allreduce(
+                float(ratio.max()) if ratio.size else 0.0, op=MPI.MAX
+            ),
+        }
+
+    def _friction_point_state(self) -> tuple[np.ndarray, ...]:
+        """Per point of the held reference pairs: slip length, traction ratio, tangential
+        force on the triangle's side, slip vector (see ``kernels.friction.friction_points``)."""
+        d = self._friction_held_data()
+        return friction_points(
+            self.surface.x, d["verts"], d["xref"], d["qptr"], d["coef"], d["normal"],
+            d["weight"], self.slip_tol,
+        )  # fmt: skip
