@@ -29,6 +29,7 @@ import ufl
 from fenics_matdepth._mpi import collective_error
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
+from fenics_matdepth.impacts import MidpointContact, default_contact_force
 from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
 
@@ -455,6 +456,8 @@ class _TimeSteps(StepEngine):
         self.t = integrator.t
         self.tol = 1e-12 * max(abs(t_end), max_dt)
         self.step_dt, self.successes = min(float(dt), max_dt), 0
+        #: the midpoint contact term standing in for the operator in the problem's assembler
+        self.step_contact: MidpointContact | None = None
 
     def record(self, step, t, dt, result, cuts, seconds) -> TimeStep:
         """The record of the state at ``t`` (step 0: the initial state)."""
@@ -494,6 +497,8 @@ class _TimeSteps(StepEngine):
         the step is accepted anyway)."""
         if not self.this_dt / 2 >= self.min_dt:
             return None
+        if self.step_contact is not None:
+            self.contact.update()  # the operator was last evaluated at the step's midpoint
         contact, integrator, forms, comm = self.contact, self.integrator, self.forms, self.comm
         max_penetration, max_energy_change = self.max_penetration, self.max_energy_change
         if max_penetration is not None and contact is not None:
@@ -532,6 +537,8 @@ class _TimeSteps(StepEngine):
         self.step_dt = this_dt / 2
 
     def accept(self, cuts: int, tic: float) -> TimeStep:
+        if self.step_contact is not None:
+            self.step_contact.accept()
         self.integrator.advance()
         self.t = self.integrator.t
         return self.record(
@@ -577,6 +584,7 @@ def solve_time_steps(
     grow_after: int = 2,
     predict: bool = True,
     progress: bool = True,
+    contact_force: str | None = None,
 ) -> list[TimeStep]:
     """Integrate ``problem`` in time from the integrator's state to ``t_end`` with step control.
 
@@ -618,6 +626,13 @@ def solve_time_steps(
             state).
         progress: report each converged step on rank 0: a progress bar in a terminal or a
             notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
+        contact_force: the contact force in the step equation: ``"midpoint"``
+            (:class:`~fenics_matdepth.impacts.MidpointContact`: the trapezoidal rule's average
+            contact force is the one at the step's midpoint, so impacts create no energy; needs
+            average-acceleration Newmark and a problem with an ``assembler``), or
+            ``"endpoint"`` (the force at the end of the step, like every other internal
+            force). Default: ``"midpoint"`` where it applies, ``"endpoint"`` otherwise
+            (backward Euler, other Newmark parameters, wrapped problems).
 
     Returns:
         The initial state (step 0) and every converged step, in time order.
@@ -655,4 +670,22 @@ def solve_time_steps(
         set_time(t)
     initial = SolveResult(True, 0, 0, np.zeros(0))
     engine.records.append(engine.record(0, t, 0.0, initial, 0, 0.0))
-    return engine.run()
+    assembler = getattr(problem, "assembler", None)
+    applies = engine.contact is not None and assembler is not None
+    if contact_force is None and not applies:
+        contact_force = "endpoint"
+    if default_contact_force(integrator, contact_force) == "endpoint":
+        return engine.run()
+    if not applies:
+        raise ValueError(
+            'contact_force="midpoint" needs a ContactProblem or NonlinearContactProblem (a '
+            'problem with an assembler and a contact operator); use contact_force="endpoint"'
+        )
+    engine.step_contact = MidpointContact(engine.contact, integrator)
+    assembler.contact = engine.step_contact
+    try:
+        return engine.run()
+    finally:
+        assembler.contact = engine.contact
+        engine.contact.update()
+        engine.step_contact.destroy()
