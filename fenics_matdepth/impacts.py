@@ -36,7 +36,7 @@ import numpy as np
 
 from fenics_matdepth.contact.operator import ContactOperator
 
-__all__ = ["CONTACT_FORCES", "MidpointContact", "default_contact_force"]
+__all__ = ["CONTACT_FORCES", "MidpointContact", "default_contact_force", "impact_failure_cause"]
 
 #: The contact forces of a time step ``solve_time_steps(contact_force=...)`` offers.
 CONTACT_FORCES = ("endpoint", "midpoint")
@@ -67,6 +67,45 @@ def default_contact_force(integrator, contact_force: str | None) -> str:
             f'gamma = 1/2), got {type(integrator).__name__}; use contact_force="endpoint"'
         )
     return contact_force
+
+
+def impact_failure_cause(
+    contact: ContactOperator | None, integrator, contact_force: str, residual_norms=()
+) -> str:
+    """What a time step that failed at the smallest dt met, for its error message: a residual
+    that stalled at its round-off floor, or the contact state at the last iterate ``u`` holds
+    (collective; updates the operator there).
+
+    Returns:
+        A sentence, or an empty string when neither applies.
+    """
+    norms = np.asarray(residual_norms, dtype=float)
+    if norms.size >= 3 and np.all(np.abs(norms[-3:] - norms[-1]) <= 1e-2 * norms[-1]):
+        return (
+            f"The residual stalled at {norms[-1]:.3g}: at dt = {integrator.dt:.3g} the inertia "
+            "term (which scales as 1/dt^2) puts its round-off above the absolute tolerance; "
+            "raise snes_atol or min_dt."
+        )
+    if contact is None:
+        return ""
+    contact.update()
+    active = contact.diagnostics()["active_pairs"]
+    if active == 0:
+        return ""
+    depth = contact.max_penetration()
+    sentence = (
+        f"The step is an impact: at the last iterate {active} contact pairs overlap, the "
+        f"deepest penetration is {depth:.3g}. "
+    )
+    if contact_force == "endpoint" and _is_trapezoidal(integrator):
+        sentence += (
+            'With contact_force="endpoint" average-acceleration Newmark creates energy at '
+            'impacts; contact_force="midpoint" (the default) does not. '
+        )
+    return sentence + (
+        "A smaller penalty (propose_penalty's factor) softens the impact; a smaller min_dt "
+        "lets the controller resolve it."
+    )
 
 
 class MidpointContact:

@@ -29,7 +29,7 @@ import ufl
 from fenics_matdepth._mpi import collective_error
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
-from fenics_matdepth.impacts import MidpointContact, default_contact_force
+from fenics_matdepth.impacts import MidpointContact, default_contact_force, impact_failure_cause
 from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
 
@@ -458,6 +458,7 @@ class _TimeSteps(StepEngine):
         self.step_dt, self.successes = min(float(dt), max_dt), 0
         #: the midpoint contact term standing in for the operator in the problem's assembler
         self.step_contact: MidpointContact | None = None
+        self.contact_force = "endpoint"
 
     def record(self, step, t, dt, result, cuts, seconds) -> TimeStep:
         """The record of the state at ``t`` (step 0: the initial state)."""
@@ -522,6 +523,11 @@ class _TimeSteps(StepEngine):
     def cut(self, failure: str | None) -> None:
         t, this_dt, min_dt = self.t, self.this_dt, self.min_dt
         self.successes = 0
+        cause = ""
+        if this_dt / 2 < min_dt:  # giving up: say what the step met
+            norms = getattr(self, "result", None)
+            norms = norms.residual_norms if norms is not None else ()
+            cause = impact_failure_cause(self.contact, self.integrator, self.contact_force, norms)
         self.integrator.restore()
         reason = (failure or "failed on another rank").split(";")[0]
         self.reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
@@ -532,7 +538,7 @@ class _TimeSteps(StepEngine):
             raise RuntimeError(
                 f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} "
                 f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: "
-                f"{failure}"
+                f"{failure} {cause}"
             )
         self.step_dt = this_dt / 2
 
@@ -674,7 +680,8 @@ def solve_time_steps(
     applies = engine.contact is not None and assembler is not None
     if contact_force is None and not applies:
         contact_force = "endpoint"
-    if default_contact_force(integrator, contact_force) == "endpoint":
+    engine.contact_force = default_contact_force(integrator, contact_force)
+    if engine.contact_force == "endpoint":
         return engine.run()
     if not applies:
         raise ValueError(

@@ -13,7 +13,7 @@ import ufl
 from conftest import assert_operator_derivatives, neo_hookean_residual, operator_residual
 
 import fenics_matdepth as fm
-from fenics_matdepth.impacts import MidpointContact
+from fenics_matdepth.impacts import MidpointContact, impact_failure_cause
 
 E, NU, RHO = 100.0, 0.3, 1.0
 
@@ -168,3 +168,15 @@ def test_midpoint_contact_force_needs_average_acceleration():
     with pytest.raises(ValueError, match="contact_force must be one of"):
         cubes.run(0.1, 0.1, contact_force="middle")
     cubes.problem.destroy()
+
+
+def test_failed_step_names_a_stalled_residual():
+    """A step given up on with a residual stuck at its round-off floor says so, with the
+    remedy; a converging history without contact names nothing."""
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 1, 1, 1, dolfinx.mesh.CellType.tetrahedron)
+    u = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,))))
+    integrator = fm.Newmark(u, 1e-5, rho=RHO)
+    stalled = [1e-8, 7.5e-9, 7.5e-9, 7.5e-9]
+    cause = impact_failure_cause(None, integrator, "midpoint", stalled)
+    assert "stalled at 7.5e-09" in cause and "snes_atol" in cause, cause
+    assert impact_failure_cause(None, integrator, "midpoint", [1.0, 1e-3, 1e-7]) == ""
