@@ -88,7 +88,10 @@ def impact_failure_cause(
         )
     if contact is None:
         return ""
-    contact.update()
+    try:
+        contact.update()
+    except FloatingPointError:  # a diverged iterate: nothing to say about its contact
+        return ""
     active = contact.diagnostics()["active_pairs"]
     if active == 0:
         return ""
