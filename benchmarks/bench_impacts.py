@@ -48,7 +48,7 @@ def two_cubes(comm: MPI.Comm, cells: int, gap: float, offset: float) -> dolfinx.
 class Impact:
     """Neo-Hookean bodies, an integrator and a ContactProblem, set up as the docs show."""
 
-    def __init__(self, mesh, method: str, dt: float, speed: float):
+    def __init__(self, mesh, method: str, dt: float, speed: float, energy: bool = True):
         V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
         self.u = u = dolfinx.fem.Function(V)
         v = ufl.TestFunction(V)
@@ -70,7 +70,7 @@ class Impact:
         self.integrator.initial(None, v0, residual=residual, contact=self.contact)
         self.problem = fm.ContactProblem(
             residual, u, self.contact,
-            energy=self.integrator.incremental_energy(self.strain_energy),
+            energy=self.integrator.incremental_energy(self.strain_energy) if energy else None,
             petsc_options_prefix="impacts_",
         )  # fmt: skip
 
@@ -83,9 +83,10 @@ def run(
     speed: float,
     t_end: float,
     energy_cap: float | None = None,
+    energy: bool = True,
 ) -> dict:
     comm = mesh.comm
-    model = Impact(mesh, method, dt, speed)
+    model = Impact(mesh, method, dt, speed, energy)
     p0 = model.integrator.linear_momentum()
     kwargs = {}
     if energy_cap is not None:  # relative to the initial (kinetic) energy
@@ -133,6 +134,10 @@ def main() -> None:
         "--max-energy-change", type=float, default=None,
         help="solve_time_steps(max_energy_change=...) as a fraction of the initial energy",
     )  # fmt: skip
+    parser.add_argument(
+        "--no-energy", action="store_true",
+        help="ContactProblem without energy= (the residual-norm line search)",
+    )  # fmt: skip
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     has_choice = "contact_force" in inspect.signature(fm.solve_time_steps).parameters
@@ -146,6 +151,7 @@ def main() -> None:
         print(
             f"{comm.size} rank(s), {args.cells}^3 cuboids per cube, max_energy_change "
             f"{args.max_energy_change} (of the initial energy)"
+            + (", no energy= (residual line search)" if args.no_energy else "")
         )
         print(
             f"{'model':7s} {'method':15s} {'contact force':13s} {'E max/E0':>9s} "
@@ -159,7 +165,10 @@ def main() -> None:
             for scheme in schemes:
                 if method == "backward_euler" and scheme == "midpoint":
                     continue  # average-acceleration Newmark only
-                r = run(mesh, method, scheme, dt, speed, t_end, args.max_energy_change)
+                r = run(
+                    mesh, method, scheme, dt, speed, t_end, args.max_energy_change,
+                    not args.no_energy,
+                )  # fmt: skip
                 if comm.rank != 0:
                     continue
                 label = scheme or "(default)"

@@ -32,11 +32,19 @@ import typing
 from petsc4py import PETSc
 
 import dolfinx
+import dolfinx.fem.petsc
 import numpy as np
+import ufl
 
 from fenics_matdepth.contact.operator import ContactOperator
 
-__all__ = ["CONTACT_FORCES", "MidpointContact", "default_contact_force", "impact_failure_cause"]
+__all__ = [
+    "CONTACT_FORCES",
+    "MidpointContact",
+    "default_contact_force",
+    "hand_incremental_potential",
+    "impact_failure_cause",
+]
 
 #: The contact forces of a time step ``solve_time_steps(contact_force=...)`` offers.
 CONTACT_FORCES = ("endpoint", "midpoint")
@@ -69,17 +77,71 @@ def default_contact_force(integrator, contact_force: str | None) -> str:
     return contact_force
 
 
+def hand_incremental_potential(problem, integrator, strain_energy, external_work) -> bool:
+    """Give a problem built without ``energy=`` the integrator's incremental potential
+    ``integrator.incremental_energy(strain_energy - external_work)``, which turns its energy
+    line search on, if that potential's derivative is the problem's residual (collective).
+
+    The check assembles both at the predicted state moved by a smooth perturbation: a residual
+    with terms the potential does not know (damping, non-conservative loads) differs there, and
+    the problem keeps its residual line search.
+
+    Returns:
+        Whether the problem got the potential.
+    """
+    assembler = getattr(problem, "assembler", None)
+    if (
+        assembler is None
+        or not hasattr(problem, "set_energy")
+        or assembler.energy_form is not None
+        or strain_energy is None
+        or integrator.rho is None
+    ):
+        return False
+    u = integrator.u
+    potential = strain_energy if external_work is None else strain_energy - external_work
+    potential = integrator.incremental_energy(potential)
+    derivative = dolfinx.fem.form(ufl.derivative(potential, u, ufl.TestFunction(u.function_space)))
+    saved = u.x.array.copy()
+    x = u.function_space.tabulate_dof_coordinates()
+    size = max(float(np.ptp(x, axis=0).max()), 1e-300)
+    shape = np.cos(np.array([1.3, 2.9, 0.7]) * x[:, [1, 2, 0]] / size + 0.2).ravel()
+    u.x.array[:] = (
+        integrator.u_prev.x.array + integrator.dt * integrator.v_prev.x.array + 1e-4 * size * shape
+    )
+    vectors = []
+    for form in (assembler.L, derivative):
+        b = dolfinx.fem.petsc.assemble_vector(form)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        vectors.append(b)
+    u.x.array[:] = saved
+    scale = vectors[0].norm()
+    vectors[1].axpy(-1.0, vectors[0])
+    same = vectors[1].norm() <= 1e-8 * scale
+    for b in vectors:
+        b.destroy()
+    if same:
+        problem.set_energy(potential)
+    return same
+
+
 def impact_failure_cause(
-    contact: ContactOperator | None, integrator, contact_force: str, residual_norms=()
+    contact: ContactOperator | None, integrator, contact_force: str, result=None
 ) -> str:
     """What a time step that failed at the smallest dt met, for its error message: a residual
     that stalled at its round-off floor, or the contact state at the last iterate ``u`` holds
     (collective; updates the operator there).
 
+    Args:
+        contact: the problem's contact operator, or None.
+        integrator: the time integrator (its ``dt`` is the failed step's).
+        contact_force: the contact force of the steps (``"midpoint"`` or ``"endpoint"``).
+        result: the last attempt's :class:`~fenics_matdepth.SolveResult`, or None.
+
     Returns:
         A sentence, or an empty string when neither applies.
     """
-    norms = np.asarray(residual_norms, dtype=float)
+    norms = np.asarray(result.residual_norms if result is not None else (), dtype=float)
     if norms.size >= 3 and np.all(np.abs(norms[-3:] - norms[-1]) <= 1e-2 * norms[-1]):
         return (
             f"The residual stalled at {norms[-1]:.3g}: at dt = {integrator.dt:.3g} the inertia "

@@ -26,10 +26,10 @@ import dolfinx
 import numpy as np
 import ufl
 
+from fenics_matdepth import impacts
 from fenics_matdepth._mpi import collective_error
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
-from fenics_matdepth.impacts import MidpointContact, default_contact_force, impact_failure_cause
 from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
 
@@ -457,7 +457,7 @@ class _TimeSteps(StepEngine):
         self.tol = 1e-12 * max(abs(t_end), max_dt)
         self.step_dt, self.successes = min(float(dt), max_dt), 0
         #: the midpoint contact term standing in for the operator in the problem's assembler
-        self.step_contact: MidpointContact | None = None
+        self.step_contact: impacts.MidpointContact | None = None
         self.contact_force = "endpoint"
 
     def record(self, step, t, dt, result, cuts, seconds) -> TimeStep:
@@ -525,9 +525,9 @@ class _TimeSteps(StepEngine):
         self.successes = 0
         cause = ""
         if this_dt / 2 < min_dt:  # giving up: say what the step met
-            norms = getattr(self, "result", None)
-            norms = norms.residual_norms if norms is not None else ()
-            cause = impact_failure_cause(self.contact, self.integrator, self.contact_force, norms)
+            cause = impacts.impact_failure_cause(
+                self.contact, self.integrator, self.contact_force, getattr(self, "result", None)
+            )
         self.integrator.restore()
         reason = (failure or "failed on another rank").split(";")[0]
         self.reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
@@ -680,7 +680,8 @@ def solve_time_steps(
     applies = engine.contact is not None and assembler is not None
     if contact_force is None and not applies:
         contact_force = "endpoint"
-    engine.contact_force = default_contact_force(integrator, contact_force)
+    impacts.hand_incremental_potential(problem, integrator, strain_energy, external_work)
+    engine.contact_force = impacts.default_contact_force(integrator, contact_force)
     if engine.contact_force == "endpoint":
         return engine.run()
     if not applies:
@@ -688,7 +689,7 @@ def solve_time_steps(
             'contact_force="midpoint" needs a ContactProblem or NonlinearContactProblem (a '
             'problem with an assembler and a contact operator); use contact_force="endpoint"'
         )
-    engine.step_contact = MidpointContact(engine.contact, integrator)
+    engine.step_contact = impacts.MidpointContact(engine.contact, integrator)
     assembler.contact = engine.step_contact
     try:
         return engine.run()

@@ -14,6 +14,7 @@ from conftest import assert_operator_derivatives, neo_hookean_residual, operator
 
 import fenics_matdepth as fm
 from fenics_matdepth.impacts import MidpointContact, impact_failure_cause
+from fenics_matdepth.results import SolveResult
 
 E, NU, RHO = 100.0, 0.3, 1.0
 
@@ -31,7 +32,7 @@ class _Cubes:
     """Two neo-Hookean cubes flying at each other at ``speed`` each, no gravity, no supports,
     set up as the docs show (the integrator's incremental potential as the energy)."""
 
-    def __init__(self, cells, offset, speed, make_integrator):
+    def __init__(self, cells, offset, speed, make_integrator, energy=True, damping=None):
         comm = MPI.COMM_WORLD
         mesh = _two_cubes(comm, cells, offset=offset)
         V = self.V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
@@ -43,13 +44,13 @@ class _Cubes:
             u, fm.material_depth(mesh), penalty=fm.propose_penalty(mesh, E)
         )
         self.integrator = make_integrator(u)
-        residual = self.integrator.inertia(v) + elastic
+        residual = self.integrator.inertia(v, damping=damping) + elastic
         v0 = dolfinx.fem.Function(V)
         v0.interpolate(lambda x: np.vstack((-speed * np.sign(x[0]), 0 * x[0], 0 * x[0])))
         self.integrator.initial(None, v0, residual=residual, contact=self.contact)
         self.problem = fm.ContactProblem(
             residual, u, self.contact,
-            energy=self.integrator.incremental_energy(self.strain_energy),
+            energy=self.integrator.incremental_energy(self.strain_energy) if energy else None,
             petsc_options_prefix="impacts_",
         )  # fmt: skip
         self.one_body = RHO * speed  # a unit cube's momentum
@@ -176,7 +177,24 @@ def test_failed_step_names_a_stalled_residual():
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 1, 1, 1, dolfinx.mesh.CellType.tetrahedron)
     u = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,))))
     integrator = fm.Newmark(u, 1e-5, rho=RHO)
-    stalled = [1e-8, 7.5e-9, 7.5e-9, 7.5e-9]
+    stalled = SolveResult(False, -6, 3, np.array([1e-8, 7.5e-9, 7.5e-9, 7.5e-9]))
     cause = impact_failure_cause(None, integrator, "midpoint", stalled)
     assert "stalled at 7.5e-09" in cause and "snes_atol" in cause, cause
-    assert impact_failure_cause(None, integrator, "midpoint", [1.0, 1e-3, 1e-7]) == ""
+    converging = SolveResult(False, -6, 3, np.array([1.0, 1e-3, 1e-7]))
+    assert impact_failure_cause(None, integrator, "midpoint", converging) == ""
+
+
+def test_time_steps_hand_the_problem_its_incremental_potential():
+    """A problem built without ``energy=`` gets the integrator's incremental potential (its
+    energy line search on) when that potential's derivative is its residual, and keeps its
+    residual line search when the residual has a term the potential lacks (damping); the
+    default run through the face-on impact converges at every step either way."""
+    for damping in (None, 0.5):
+        cubes = _Cubes(2, 0.0, 1.0, lambda u: fm.Newmark(u, 0.05, rho=RHO), energy=False,
+                       damping=damping)  # fmt: skip
+        assert cubes.problem.assembler.energy_form is None
+        history, _, drift = cubes.run(0.3, 0.05)
+        assert (cubes.problem.assembler.energy_form is not None) == (damping is None)
+        assert max(r.active_pairs for r in history) > 0 and sum(r.cuts for r in history) == 0
+        assert drift <= 1e-12, drift
+        cubes.problem.destroy()
