@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import typing
 
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import dolfinx
@@ -104,7 +105,9 @@ def hand_incremental_potential(problem, integrator, strain_energy, external_work
     derivative = dolfinx.fem.form(ufl.derivative(potential, u, ufl.TestFunction(u.function_space)))
     saved = u.x.array.copy()
     x = u.function_space.tabulate_dof_coordinates()
-    size = max(float(np.ptp(x, axis=0).max()), 1e-300)
+    # one length on every rank, so that owned and ghost values of the test state agree
+    local = float(np.ptp(x, axis=0).max()) if x.size else 0.0
+    size = u.function_space.mesh.comm.allreduce(local, op=MPI.MAX)
     shape = np.cos(np.array([1.3, 2.9, 0.7]) * x[:, [1, 2, 0]] / size + 0.2).ravel()
     u.x.array[:] = (
         integrator.u_prev.x.array + integrator.dt * integrator.v_prev.x.array + 1e-4 * size * shape
