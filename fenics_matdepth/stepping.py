@@ -617,9 +617,8 @@ def solve_time_steps(
         min_dt: smallest step tried before giving up; default ``dt / 2**10``.
         max_dt: largest step the controller grows to; default ``dt``.
         set_time: sets time-dependent data for a time t (collective).
-        strain_energy: UFL form of the stored (strain) energy, reported per step; a
-            ContactProblem built without ``energy=`` gets the incremental potential of it and
-            ``external_work`` when its derivative is the residual (energy line search).
+        strain_energy: UFL form of the stored (strain) energy, reported per step (and, with
+            ``external_work``, the incremental potential given to a problem without energy=).
         external_work: UFL form of the work of conservative loads (e.g. ``int rho g . u dx``),
             reported per step and subtracted in ``TimeStep.total_energy``.
         max_penetration: reject converged steps whose contact penetration exceeds this (L);
