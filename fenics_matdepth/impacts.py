@@ -27,6 +27,7 @@ rule sees only the averages) and shows only in the integrator's stored accelerat
 
 from __future__ import annotations
 
+import contextlib
 import typing
 
 from mpi4py import MPI
@@ -42,6 +43,7 @@ from fenics_matdepth.contact.operator import ContactOperator
 __all__ = [
     "CONTACT_FORCES",
     "MidpointContact",
+    "contact_force_of_steps",
     "default_contact_force",
     "hand_incremental_potential",
     "impact_failure_cause",
@@ -57,17 +59,29 @@ def _is_trapezoidal(integrator) -> bool:
     return beta is not None and np.isclose(gamma, 0.5) and np.isclose(beta, 0.25)
 
 
-def default_contact_force(integrator, contact_force: str | None) -> str:
+def _takes_midpoint(problem) -> bool:
+    """Whether the problem assembles through a SystemAssembler with a contact operator."""
+    return getattr(problem, "contact", None) is not None and hasattr(problem, "assembler")
+
+
+def default_contact_force(integrator, contact_force: str | None, problem=None) -> str:
     """The contact force a time step uses: ``contact_force`` checked, or by default
     ``"midpoint"`` for average-acceleration Newmark and ``"endpoint"`` for any other
-    integrator (backward Euler, whose end-of-step contact force only dissipates).
+    integrator (backward Euler, whose end-of-step contact force only dissipates) and for a
+    problem (given) without an assembler and a contact operator (a user's wrapper).
 
     Raises:
         ValueError: for an unknown name, or ``"midpoint"`` with another integrator than
-            average-acceleration Newmark.
+            average-acceleration Newmark or (given) a problem it cannot reach.
     """
     if contact_force is None:
-        return "midpoint" if _is_trapezoidal(integrator) else "endpoint"
+        reaches = problem is None or _takes_midpoint(problem)
+        return "midpoint" if _is_trapezoidal(integrator) and reaches else "endpoint"
+    if contact_force == "midpoint" and problem is not None and not _takes_midpoint(problem):
+        raise ValueError(
+            'contact_force="midpoint" needs a ContactProblem or NonlinearContactProblem (a '
+            'problem with an assembler and a contact operator); use contact_force="endpoint"'
+        )
     if contact_force not in CONTACT_FORCES:
         raise ValueError(f"contact_force must be one of {CONTACT_FORCES}, got {contact_force!r}")
     if contact_force == "midpoint" and not _is_trapezoidal(integrator):
@@ -76,6 +90,27 @@ def default_contact_force(integrator, contact_force: str | None) -> str:
             f'gamma = 1/2), got {type(integrator).__name__}; use contact_force="endpoint"'
         )
     return contact_force
+
+
+@contextlib.contextmanager
+def contact_force_of_steps(
+    problem, integrator, contact_force: str
+) -> typing.Iterator[MidpointContact | None]:
+    """Within the block, the problem's assembler takes the contact term of
+    :class:`MidpointContact` (yielded; None and nothing changed for ``"endpoint"``); afterwards
+    the operator again, updated at ``u`` (collective)."""
+    if contact_force == "endpoint":
+        yield None
+        return
+    operator = problem.contact
+    midpoint = MidpointContact(operator, integrator)
+    problem.assembler.contact = midpoint
+    try:
+        yield midpoint
+    finally:
+        problem.assembler.contact = operator
+        operator.update()
+        midpoint.destroy()
 
 
 def hand_incremental_potential(problem, integrator, strain_energy, external_work) -> bool:

@@ -677,24 +677,8 @@ def solve_time_steps(
         set_time(t)
     initial = SolveResult(True, 0, 0, np.zeros(0))
     engine.records.append(engine.record(0, t, 0.0, initial, 0, 0.0))
-    assembler = getattr(problem, "assembler", None)
-    applies = engine.contact is not None and assembler is not None
-    if contact_force is None and not applies:
-        contact_force = "endpoint"
     impacts.hand_incremental_potential(problem, integrator, strain_energy, external_work)
-    engine.contact_force = impacts.default_contact_force(integrator, contact_force)
-    if engine.contact_force == "endpoint":
+    engine.contact_force = impacts.default_contact_force(integrator, contact_force, problem)
+    with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
+        engine.step_contact = midpoint
         return engine.run()
-    if not applies:
-        raise ValueError(
-            'contact_force="midpoint" needs a ContactProblem or NonlinearContactProblem (a '
-            'problem with an assembler and a contact operator); use contact_force="endpoint"'
-        )
-    engine.step_contact = impacts.MidpointContact(engine.contact, integrator)
-    assembler.contact = engine.step_contact
-    try:
-        return engine.run()
-    finally:
-        assembler.contact = engine.contact
-        engine.contact.update()
-        engine.step_contact.destroy()
