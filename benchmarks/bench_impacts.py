@@ -136,7 +136,7 @@ def main() -> None:
     )  # fmt: skip
     parser.add_argument(
         "--no-energy", action="store_true",
-        help="ContactProblem without energy= (the residual-norm line search)",
+        help="ContactProblem without energy= (solve_time_steps hands it the potential when it can)",
     )  # fmt: skip
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
@@ -151,7 +151,7 @@ def main() -> None:
         print(
             f"{comm.size} rank(s), {args.cells}^3 cuboids per cube, max_energy_change "
             f"{args.max_energy_change} (of the initial energy)"
-            + (", no energy= (residual line search)" if args.no_energy else "")
+            + (", ContactProblem without energy=" if args.no_energy else "")
         )
         print(
             f"{'model':7s} {'method':15s} {'contact force':13s} {'E max/E0':>9s} "
