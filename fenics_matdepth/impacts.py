@@ -1,4 +1,4 @@
-"""The contact force of an implicit time step that creates no energy at impacts.
+"""The contact force of an implicit time step that does not pump energy into impacts.
 
 Average-acceleration Newmark is the trapezoidal rule on ``(u, v)``: over a step,
 ``M (v_{n+1} - v_n) = -dt (f_n + f_{n+1}) / 2`` and ``u_{n+1} - u_n = dt (v_n + v_{n+1}) / 2``,

@@ -635,7 +635,7 @@ def solve_time_steps(
             notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
         contact_force: the contact force in the step equation: ``"midpoint"``
             (:class:`~fenics_matdepth.impacts.MidpointContact`: the trapezoidal rule's average
-            contact force is the one at the step's midpoint, so impacts create no energy; needs
+            contact force is the one at the step's midpoint, so impacts pump no energy in; needs
             average-acceleration Newmark and a problem with an ``assembler``), or
             ``"endpoint"`` (the force at the end of the step, like every other internal
             force). Default: ``"midpoint"`` where it applies, ``"endpoint"`` otherwise
