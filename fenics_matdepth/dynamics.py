@@ -20,6 +20,10 @@ of the incremental potential
     u_pred = u_n + dt v_n + dt^2 (1/2 - beta) a_n,
 
 so the energy line search of :class:`~fenics_matdepth.ContactProblem` works in dynamics.
+That is the contact force of backward Euler's steps; with average-acceleration Newmark,
+:func:`~fenics_matdepth.solve_time_steps` takes it at the step's midpoint instead
+(:mod:`fenics_matdepth.impacts`: the end-of-step force creates energy at impacts), which keeps
+this structure with ``4 E_contact((u_n + u) / 2) - f_n . u`` in place of ``E_contact(u)``.
 
 Generalized-alpha is not offered: it evaluates the internal forces at an intermediate
 configuration ``u_{n+1-alpha_f}``, and a consistent scheme would need the contact operator

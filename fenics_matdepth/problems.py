@@ -302,6 +302,14 @@ class ContactProblem(SNESCallbacks, _Releasable):
 
     # -- solve ----------------------------------------------------------------------------------
 
+    def set_energy(self, energy: ufl.Form) -> None:
+        """Turn the energy line search on after construction, as ``energy=`` does (the
+        derivative of ``energy`` must be the residual ``F``)."""
+        self._energy = dolfinx.fem.form(energy)
+        self.assembler.energy_form = self._energy
+        self.snes.setObjective(self._objective)
+        self.snes.setLineSearchPreCheck(self._check_direction)
+
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Solve from the current ``u``; ``u`` holds the last iterate afterwards (collective).
 

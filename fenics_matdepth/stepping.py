@@ -26,6 +26,7 @@ import dolfinx
 import numpy as np
 import ufl
 
+from fenics_matdepth import impacts
 from fenics_matdepth._mpi import collective_error
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
@@ -468,6 +469,9 @@ class _TimeSteps(StepEngine):
         self.t = integrator.t
         self.tol = 1e-12 * max(abs(t_end), max_dt)
         self.step_dt, self.successes = min(float(dt), max_dt), 0
+        #: the midpoint contact term standing in for the operator in the problem's assembler
+        self.step_contact: impacts.MidpointContact | None = None
+        self.contact_force = "endpoint"
 
     def record(self, step, t, dt, result, cuts, seconds) -> TimeStep:
         """The record of the state at ``t`` (step 0: the initial state)."""
@@ -507,6 +511,8 @@ class _TimeSteps(StepEngine):
         the step is accepted anyway)."""
         if not self.this_dt / 2 >= self.min_dt:
             return None
+        if self.step_contact is not None:
+            self.contact.update()  # the operator was last evaluated at the step's midpoint
         contact, integrator, forms, comm = self.contact, self.integrator, self.forms, self.comm
         max_penetration, max_energy_change = self.max_penetration, self.max_energy_change
         if max_penetration is not None and contact is not None:
@@ -530,6 +536,11 @@ class _TimeSteps(StepEngine):
     def cut(self, failure: str | None) -> None:
         t, this_dt, min_dt = self.t, self.this_dt, self.min_dt
         self.successes = 0
+        cause = ""
+        if this_dt / 2 < min_dt:  # giving up: say what the step met
+            cause = impacts.impact_failure_cause(
+                self.contact, self.integrator, self.contact_force, getattr(self, "result", None)
+            )
         self.integrator.restore()
         reason = (failure or "failed on another rank").split(";")[0]
         self.reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
@@ -540,11 +551,13 @@ class _TimeSteps(StepEngine):
             raise RuntimeError(
                 f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} "
                 f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: "
-                f"{failure}"
+                f"{failure} {cause}"
             )
         self.step_dt = this_dt / 2
 
     def accept(self, cuts: int, tic: float) -> TimeStep:
+        if self.step_contact is not None:
+            self.step_contact.accept()
         self.integrator.advance()
         self.t = self.integrator.t
         return self.record(
@@ -590,6 +603,7 @@ def solve_time_steps(
     grow_after: int = 2,
     predict: bool = True,
     progress: bool = True,
+    contact_force: str | None = None,
 ) -> list[TimeStep]:
     """Integrate ``problem`` in time from the integrator's state to ``t_end`` with step control.
 
@@ -616,7 +630,8 @@ def solve_time_steps(
         min_dt: smallest step tried before giving up; default ``dt / 2**10``.
         max_dt: largest step the controller grows to; default ``dt``.
         set_time: sets time-dependent data for a time t (collective).
-        strain_energy: UFL form of the stored (strain) energy, reported per step.
+        strain_energy: UFL form of the stored (strain) energy, reported per step (and, with
+            ``external_work``, the incremental potential given to a problem without energy=).
         external_work: UFL form of the work of conservative loads (e.g. ``int rho g . u dx``),
             reported per step and subtracted in ``TimeStep.total_energy``.
         max_penetration: reject converged steps whose contact penetration exceeds this (L);
@@ -631,6 +646,13 @@ def solve_time_steps(
             state).
         progress: report each converged step on rank 0: a progress bar in a terminal or a
             notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
+        contact_force: the contact force in the step equation: ``"midpoint"``
+            (:class:`~fenics_matdepth.impacts.MidpointContact`: the trapezoidal rule's average
+            contact force is the one at the step's midpoint, so impacts pump no energy in; needs
+            average-acceleration Newmark and a problem with an ``assembler``), or
+            ``"endpoint"`` (the force at the end of the step, like every other internal
+            force). Default: ``"midpoint"`` where it applies, ``"endpoint"`` otherwise
+            (backward Euler, other Newmark parameters, wrapped problems).
 
     Returns:
         The initial state (step 0) and every converged step, in time order.
@@ -668,4 +690,8 @@ def solve_time_steps(
         set_time(t)
     initial = SolveResult(True, 0, 0, np.zeros(0))
     engine.records.append(engine.record(0, t, 0.0, initial, 0, 0.0))
-    return engine.run()
+    impacts.hand_incremental_potential(problem, integrator, strain_energy, external_work)
+    engine.contact_force = impacts.default_contact_force(integrator, contact_force, problem)
+    with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
+        engine.step_contact = midpoint
+        return engine.run()
