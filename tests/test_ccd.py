@@ -10,14 +10,12 @@ the samples; exact contact, distance 0, is checked on analytical cases).
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from fenics_matdepth.geometry.ccd import (
     edge_edge_time_of_impact,
     entry_fraction,
     vertex_triangle_time_of_impact,
 )
-
 
 
 def _point_triangle_distance(p, tri):

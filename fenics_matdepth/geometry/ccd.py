@@ -185,7 +185,7 @@ def _pair_times(kind, x0, x1, min_distance, tol, max_steps):
     out = np.empty(n, dtype=x0.dtype)
     xs = np.empty((4, 3), dtype=x0.dtype)
     for i in range(n):
-        t, d, lip, hit = _advance(kind, x0[i], x1[i], xs, min_distance, tol, max_steps)
+        t, _, _, hit = _advance(kind, x0[i], x1[i], xs, min_distance, tol, max_steps)
         out[i] = t if hit else np.inf
     return out
 
