@@ -107,13 +107,13 @@ def _random_vt(rng):
 
 
 def test_vertex_triangle_random_trajectories_are_never_late():
-    """200 random vertex-triangle trajectories, min distance 0.01 and 0.05: the CCD time is
+    """120 random vertex-triangle trajectories, min distance 0.01 and 0.05: the CCD time is
     never later than the reference (within the reference's bisection accuracy 1e-9) and,
     where the reference finds an impact, earlier by less than 2e-3 of the step."""
     rng = np.random.default_rng(7)
     hits = 0
     for min_distance in (0.01, 0.05):
-        for _ in range(100):
+        for _ in range(60):
             p0, tri0, p1, tri1 = _random_vt(rng)
             ref, dmin = _reference_toi(_vt_distance(p0, tri0, p1, tri1), min_distance, 400)
             got = vertex_triangle_time_of_impact(p0, tri0, p1, tri1, min_distance)[0]
@@ -124,15 +124,15 @@ def test_vertex_triangle_random_trajectories_are_never_late():
             else:
                 # the sampling misses only impacts of grazing trajectories
                 assert not np.isfinite(got) or dmin - min_distance < 1e-2, (got, dmin)
-    assert hits > 100  # most trajectories hit: the check has teeth
+    assert hits > 60  # most trajectories hit: the check has teeth
 
 
 def test_edge_edge_random_trajectories_are_never_late():
-    """100 random crossing edge pairs, min distance 0.01: never later than the reference, at
+    """60 random crossing edge pairs, min distance 0.01: never later than the reference, at
     most 2e-3 early."""
     rng = np.random.default_rng(11)
     hits = 0
-    for _ in range(100):
+    for _ in range(60):
         # an edge along x below one along y (crossing in projection), each tilted at random
         a0 = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]) + 0.3 * rng.normal(size=(2, 3))
         b0 = np.array([[0.0, -1.0, 2.0], [0.0, 1.0, 2.0]]) + 0.3 * rng.normal(size=(2, 3))
@@ -144,7 +144,7 @@ def test_edge_edge_random_trajectories_are_never_late():
             hits += 1
             assert got <= ref + 1e-9, (got, ref)
             assert got >= ref - 2e-3, (got, ref)
-    assert hits > 60
+    assert hits > 36
 
 
 def test_degenerate_trajectories():

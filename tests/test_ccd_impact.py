@@ -99,11 +99,10 @@ def _fly(speed: float, t_end: float, ccd: bool = True, steps: int | None = None)
     return history, np.asarray(lowest), entry
 
 
-@pytest.mark.parametrize("speed", [30.0, 50.0])
-def test_fast_cube_passes_through_a_thin_plate_without_collision_detection(speed):
-    """The failure the collision detection removes: with ``ccd=False`` the cube ends below
-    the plate."""
-    _, lowest, _ = _fly(speed, 0.03, ccd=False)
+def test_fast_cube_passes_through_a_thin_plate_without_collision_detection():
+    """The failure the collision detection removes: with ``ccd=False`` the cube at 50 per
+    second ends below the plate (30 per second too, measured, not tested: CI time)."""
+    _, lowest, _ = _fly(50.0, 0.02, ccd=False)
     assert lowest[-1] < -0.1, lowest  # the cube's bottom well below the plate
 
 
