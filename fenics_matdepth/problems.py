@@ -25,6 +25,7 @@ import ufl
 
 from fenics_matdepth import linear_solver
 from fenics_matdepth._compat import NewtonSolverProblemBase, bc_constrains_space
+from fenics_matdepth.contact.ccd import ENTRY_FRACTION, ContinuousCollision
 from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.free_bodies import FreeBodyDamping
 from fenics_matdepth.results import SolveResult
@@ -164,6 +165,12 @@ class ContactProblem(SNESCallbacks, _Releasable):
             and, where their load would move them by more than an element (no contact yet) or
             a solve fails, damp them until contact holds them; the result is the undamped
             problem's (:mod:`fenics_matdepth.free_bodies`). ``False``: never.
+        ccd: continuous collision detection in the line search: each Newton step is
+            shortened (before the backtracking) so that no boundary vertex or edge apart from
+            a triangle or edge at the iterate goes more than the entry tolerance past it
+            (:class:`~fenics_matdepth.contact.ccd.ContinuousCollision`); a surface cannot jump
+            through a thin layer in one Newton step. ``False``: steps are not capped.
+        ccd_entry: the entry tolerance, as a fraction of the local boundary edge length.
 
     Attributes:
         free_bodies: the :class:`~fenics_matdepth.free_bodies.FreeBodyDamping` (its
@@ -171,7 +178,11 @@ class ContactProblem(SNESCallbacks, _Releasable):
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
             ``contact_update`` (gather, refit, pair search), ``contact_assembly`` (pair kernels
             and insertion) and ``linear_solve`` (factorisation or preconditioner set-up, and
-            the solve).
+            the solve), and ``ccd`` (continuous collision detection of the steps).
+        collisions: the :class:`~fenics_matdepth.contact.ccd.ContinuousCollision` of the
+            boundary (None with ``ccd=False``); ``solve_time_steps`` also truncates time steps
+            with it.
+        ccd_caps: Newton steps of the last solve that the collision detection shortened.
         assembler: the :class:`~fenics_matdepth.system_assembler.SystemAssembler` (residual,
             Jacobian, matrix).
     """
@@ -188,10 +199,14 @@ class ContactProblem(SNESCallbacks, _Releasable):
         petsc_options: dict | None = None,
         keep_factorisation: bool = True,
         damp_free_bodies: bool = True,
+        ccd: bool = True,
+        ccd_entry: float = ENTRY_FRACTION,
     ):
         _check_problem_inputs(u, contact, bcs)
         self.u = u
         self.contact = contact
+        self.collisions = ContinuousCollision(contact.surface, ccd_entry) if ccd else None
+        self.ccd_caps = 0
         self.bcs = list(bcs)
         self._F = dolfinx.fem.form(F)
         self._J = dolfinx.fem.form(J if J is not None else ufl.derivative(F, u))
@@ -200,6 +215,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
         self._watch = self.assembler.watch
         self.timings = dict(self._watch.totals)
+        if self.collisions is not None:
+            self.timings["ccd"] = 0.0
         self.prefix = petsc_options_prefix
         self._create_vectors()
         user = petsc_options or {}
@@ -245,7 +262,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self.snes.setConvergenceTest(self._converged)
         if self._energy is not None:
             self.snes.setObjective(self._objective)
-            self.snes.setLineSearchPreCheck(self._check_direction)
+        if self._energy is not None or self.collisions is not None:
+            self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
         self.snes.getKSP().setFromOptions()
 
@@ -284,6 +302,21 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._iteration_offset = 0
         #: Newton steps of the last solve taken with the shifted Jacobian (_shifted_direction)
         self.shifted_steps = 0
+
+    def _precheck(self, x: PETSc.Vec, y: PETSc.Vec) -> bool:
+        """Line-search pre-check: the energy's direction check (``_check_direction``), then
+        the step ``x -> x - y`` shortened to the collision detection's entry cap (collective).
+        Returns whether ``y`` was changed."""
+        changed = self._check_direction(x, y) if self._energy is not None else False
+        if self.collisions is None:
+            return changed
+        x_array = x.getArray(readonly=True)
+        fraction = self.collisions.step_fraction(x_array, x_array - y.getArray(readonly=True))
+        if fraction < 1.0:
+            y.scale(fraction)
+            self.ccd_caps += 1
+            return True
+        return changed
 
     @property
     def _A(self) -> PETSc.Mat:
@@ -343,7 +376,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
                     self._factorisations = self._iteration_offset = 0
                     self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                     self._merit_is_energy, self._last_norm = True, np.inf
-                    self.shifted_steps = 0
+                    self.shifted_steps = self.ccd_caps = 0
+                    ccd_seconds = self.collisions.seconds if self.collisions else 0.0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
                     # the load may have changed since
@@ -386,6 +420,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._carry_backoff.record(failed=carried_failed, succeeded=self._carried)
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
+        if self.collisions is not None:
+            self.timings["ccd"] = self.collisions.seconds - ccd_seconds
         reason = int(self.snes.getConvergedReason())
         if reason > 0:
             self._carried_revision = self.contact.penalty_revision

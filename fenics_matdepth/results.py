@@ -191,6 +191,8 @@ class TimeStep:
         external_work: work of the external loads (F L). Each energy is NaN when it cannot be
             computed (no density, no form given).
         seconds: wall time of the step, failed attempts included.
+        truncations: attempts truncated at a time of impact by the continuous collision
+            detection (counted among ``cuts`` too).
     """
 
     step: int
@@ -205,6 +207,7 @@ class TimeStep:
     contact_energy: float
     external_work: float
     seconds: float
+    truncations: int = 0
 
     @property
     def total_energy(self) -> float:

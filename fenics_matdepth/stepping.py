@@ -466,6 +466,10 @@ class _TimeSteps(StepEngine):
         self.max_penetration, self.max_energy_change = max_penetration, max_energy_change
         self.grow_after, self.predict = grow_after, predict
         self.contact = getattr(problem, "contact", None)
+        # continuous collision detection: the predictor and the converged step are cut at
+        # their entry cap (truncate, resume_dt: the pending truncation and the step after it)
+        self.collisions = getattr(problem, "collisions", None)
+        self.truncations, self.truncate, self.resume_dt = 0, None, None
         self.t = integrator.t
         self.tol = 1e-12 * max(abs(t_end), max_dt)
         self.step_dt, self.successes = min(float(dt), max_dt), 0
@@ -485,6 +489,7 @@ class _TimeSteps(StepEngine):
             kinetic_energy=kinetic, strain_energy=_form_value(forms["strain"], comm, np.nan),
             contact_energy=diag.get("energy", 0.0),
             external_work=_form_value(forms["external"], comm), seconds=seconds,
+            truncations=self.truncations if step else 0,
         )  # fmt: skip
 
     def started(self) -> None:
@@ -505,10 +510,23 @@ class _TimeSteps(StepEngine):
             integrator.predict()
         else:
             integrator.restore()
+        self.truncate = None
+        if self.predict and self.collisions is not None:
+            # Newton starts on this side of any surface the prediction would jump through
+            u_prev, u = integrator.u_prev.x.array, self.u.x.array
+            fraction = self.collisions.step_fraction(u_prev, u)
+            if fraction < 1.0:
+                u[:] = u_prev + fraction * (u - u_prev)
 
     def check(self, result: SolveResult) -> str | None:
         """Why a converged step is rejected by the step controller, or None (at ``min_dt``
-        the step is accepted anyway)."""
+        the step is accepted anyway). A step whose trajectory takes a surface deeper than the
+        entry tolerance into another it was apart from is truncated at that fraction."""
+        if self.collisions is not None:
+            fraction = self.collisions.step_fraction(self.integrator.u_prev.x.array, self.u.x.array)
+            if fraction < 1.0 and self.this_dt > self.min_dt:
+                self.truncate = fraction
+                return f"truncated at {fraction:.3g} of the step (continuous collision detection)"
         if not self.this_dt / 2 >= self.min_dt:
             return None
         if self.step_contact is not None:
@@ -542,6 +560,15 @@ class _TimeSteps(StepEngine):
                 self.contact, self.integrator, self.contact_force, getattr(self, "result", None)
             )
         self.integrator.restore()
+        if self.truncate is not None:
+            # at the time of impact (the same on every rank), then on with the step before
+            self.truncations += 1
+            self.resume_dt = self.resume_dt or self.step_dt
+            self.step_dt = max(this_dt * self.truncate, min_dt)
+            self.reporter.message(
+                f"      t {t:.5g}: dt {this_dt:.3g} truncated to {self.step_dt:.3g} (contact)"
+            )
+            return
         reason = (failure or "failed on another rank").split(";")[0]
         self.reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
         if this_dt / 2 < min_dt:
@@ -560,9 +587,11 @@ class _TimeSteps(StepEngine):
             self.step_contact.accept()
         self.integrator.advance()
         self.t = self.integrator.t
-        return self.record(
+        record = self.record(
             len(self.records), self.t, self.this_dt, self.result, cuts, time.perf_counter() - tic
         )
+        self.truncations = 0
+        return record
 
     def write(self, record: TimeStep) -> None:
         write_state(self.writer, self.u, self.t)
@@ -579,6 +608,9 @@ class _TimeSteps(StepEngine):
         )
 
     def grow(self, cuts: int) -> None:
+        if self.resume_dt is not None:  # a truncated step: the rest at the step before
+            self.step_dt, self.resume_dt = self.resume_dt, None
+            return
         if cuts == 0:
             self.successes += 1
             if self.successes >= self.grow_after and self.step_dt < self.max_dt:
@@ -613,6 +645,13 @@ def solve_time_steps(
     deeper penetration than that, is retried from the last converged state with half the step;
     after ``grow_after`` successive steps without a cut, the step doubles again, up to
     ``max_dt``. The last step is shortened to land on ``t_end``.
+
+    With the problem's continuous collision detection (``ContactProblem(..., ccd=True)``,
+    the default), the predictor is cut back where it would take a surface through another, and
+    a converged step whose trajectory (straight, from the last state) takes a boundary vertex
+    or edge deeper than the entry tolerance into a surface it was apart from is truncated at
+    that fraction of the step and solved again (the paper's section 8.2); the step after it
+    resumes the step size from before. ``TimeStep.truncations`` counts them.
 
     Args:
         problem: a :class:`~fenics_matdepth.ContactProblem` or

@@ -1,0 +1,171 @@
+"""Continuous collision detection of the boundary between two states: how far a step may go.
+
+:class:`ContinuousCollision` answers, for a step from displacement ``u0`` to ``u1`` (every
+vertex on a straight line), the fraction of the step after which some boundary vertex could
+be more than the *entry tolerance* past a boundary triangle it was apart from at the start, or
+some boundary edge past an edge (the entry cap of `fenics_matdepth.geometry.ccd`). Pairs that
+start in contact (closer than the entry tolerance, or a vertex behind the plane of the
+triangle: inside the body or leaving it) move freely: the material depth handles them, and our
+surfaces intersect by design.
+
+Distributed: the boundary surface (triangles, edges, vertex positions) is small against the
+volume, so every rank holds all of it (one allgather of the boundary vertices' displacements
+per query); each rank tests the primitive pairs of the triangles it owns, against all, and the
+smallest cap is reduced over the ranks: the answer does not depend on the partition.
+
+Broad phase: an AABB tree (`fenics_matdepth.geometry.bvh`) over the swept boxes of the
+boundary triangles (the box of a triangle's six positions at the step's start and end),
+refitted at each query and rebuilt when refits have degraded it; each owned triangle's swept
+box is queried against it.
+"""
+
+from __future__ import annotations
+
+import time
+
+from mpi4py import MPI
+
+import numpy as np
+
+from fenics_matdepth._constants import FLOAT, INDEX
+from fenics_matdepth._mpi import allgather_rows
+from fenics_matdepth.contact.surface import ContactSurface
+from fenics_matdepth.geometry.boxes import element_boxes
+from fenics_matdepth.geometry.bvh import AABBTree
+from fenics_matdepth.geometry.ccd import sweep_caps
+
+__all__ = ["ENTRY_FRACTION", "ContinuousCollision"]
+
+#: Default entry tolerance, as a fraction of the local boundary edge length (the smaller of
+#: the two triangles' mean reference edge lengths): how far a separated pair may go past its
+#: first contact within one step. Below the thickness of a layer one element thick, and large
+#: enough that a Newton step reaching a new contact is not cut to nothing.
+ENTRY_FRACTION = 0.25
+
+
+class ContinuousCollision:
+    """The entry cap of a step of the boundary between two displacements (collective).
+
+    Args:
+        surface: the contact operator's :class:`~fenics_matdepth.contact.surface.ContactSurface`
+            (its owned boundary triangles, outward oriented, and vertex numbering).
+        entry_fraction: entry tolerance per pair, as a fraction of the local boundary edge
+            length (reference configuration), > 0.
+
+    Attributes:
+        entry: (num boundary triangles,) entry tolerance of each triangle's pairs (L).
+        queries: number of :meth:`step_fraction` calls so far.
+        seconds: wall time spent in them (s).
+        capped: pairs capped below 1 by the last query (over all ranks).
+        last_pair: ``(kind, i, j)`` of the pair that set the last cap below 1: kind 0 a
+            vertex and a triangle, 1 two edges, in the boundary numbering; None otherwise.
+    """
+
+    def __init__(self, surface: ContactSurface, entry_fraction: float = ENTRY_FRACTION):
+        if not entry_fraction > 0.0:
+            raise ValueError(
+                f"entry_fraction must be > 0 (a fraction of the boundary edge length), got "
+                f"{entry_fraction}"
+            )
+        comm = self.comm = surface.comm
+        self.entry_fraction = float(entry_fraction)
+        n_owned = surface.owned_dof_count() // 3
+        self._n_owned_dofs = 3 * n_owned
+        own_tri = surface.global_vertex[surface.tri]
+        tri_global = allgather_rows(comm, own_tri.astype(INDEX))
+        counts = np.asarray(comm.allgather(int(own_tri.shape[0])), dtype=INDEX)
+        first = int(counts[: comm.rank].sum())
+        self._owned_tri = np.arange(first, first + own_tri.shape[0], dtype=INDEX)
+        # boundary vertices (global numbers, sorted) and the triangles over them
+        self.vertices = np.unique(tri_global)
+        self.tri = np.searchsorted(self.vertices, tri_global).astype(INDEX)
+        nb = self.vertices.size
+        # the owned boundary vertices: their local rows and boundary numbers, in gather order
+        owned_global = surface.global_vertex[:n_owned]
+        pos = np.minimum(np.searchsorted(self.vertices, owned_global), max(nb - 1, 0))
+        mine = (self.vertices[pos] == owned_global) if nb else np.zeros(n_owned, dtype=bool)
+        self._owned_rows = np.flatnonzero(mine)
+        self._gather_order = allgather_rows(comm, pos[mine].astype(INDEX))
+        self.X = np.empty((nb, 3), dtype=FLOAT)
+        self.X[self._gather_order] = allgather_rows(comm, surface.X[self._owned_rows])
+        self._edges_and_owners()
+        edge_length = np.linalg.norm(
+            self.X[self.tri[:, [1, 2, 0]]] - self.X[self.tri], axis=2
+        ).mean(axis=1)
+        self.entry = np.ascontiguousarray(self.entry_fraction * edge_length, dtype=FLOAT)
+        # the swept-box tree: a "cell" of six points, the triangle at the start and the end
+        self._swept_cells = np.ascontiguousarray(np.hstack((self.tri, self.tri + nb)))
+        self._tree: AABBTree | None = None
+        self.queries = 0
+        self.seconds = 0.0
+        self.capped = 0
+        self.last_pair: tuple[int, int, int] | None = None
+
+    def _edges_and_owners(self) -> None:
+        """Boundary edges, each triangle's edges, and the owner triangle of each edge and
+        vertex (the first triangle holding it), which tests its pairs."""
+        tri = self.tri
+        m = tri.shape[0]
+        sides = np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2)
+        sides = np.sort(sides, axis=1)
+        nb = max(self.vertices.size, 1)
+        keys = sides[:, 0] * nb + sides[:, 1]
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        self.edges = np.ascontiguousarray(sides[first])
+        self.tri_edge = np.ascontiguousarray(inverse.reshape(m, 3).astype(INDEX))
+        self.edge_owner = (first // 3).astype(INDEX)
+        owner = np.full(self.vertices.size, m, dtype=INDEX)
+        np.minimum.at(owner, tri.ravel(), np.repeat(np.arange(m, dtype=INDEX), 3))
+        self.vertex_owner = owner
+
+    @property
+    def num_triangles(self) -> int:
+        """Number of boundary triangles (all ranks)."""
+        return int(self.tri.shape[0])
+
+    def positions(self, u_owned: np.ndarray) -> np.ndarray:
+        """Current positions (nb, 3) of all boundary vertices, from this rank's owned dof
+        values of the displacement (3 per owned vertex; collective)."""
+        u = np.asarray(u_owned)[: self._n_owned_dofs].reshape(-1, 3)
+        x = np.empty_like(self.X)
+        x[self._gather_order] = allgather_rows(self.comm, u[self._owned_rows].astype(FLOAT))
+        x += self.X
+        return x
+
+    def step_fraction(self, u0_owned: np.ndarray, u1_owned: np.ndarray) -> float:
+        """The fraction of the step from ``u0`` to ``u1`` (owned dof values) that keeps every
+        pair apart at ``u0`` from going deeper than its entry tolerance past first contact
+        (1: the whole step; collective, the same on every rank).
+
+        Args:
+            u0_owned: displacement at the step's start, this rank's owned dofs (or more:
+                ghosts after them are ignored).
+            u1_owned: displacement at the step's end, the same layout.
+        """
+        tic = time.perf_counter()
+        x0 = self.positions(u0_owned)
+        x1 = self.positions(u1_owned)
+        nb = x0.shape[0]
+        best, capped, which = 1.0, 0, (-1, -1, -1)
+        if self._owned_tri.size and nb:
+            points = np.ascontiguousarray(np.vstack((x0, x1)))
+            if self._tree is None:
+                self._tree = AABBTree(points, self._swept_cells)
+            else:
+                self._tree.refit(points)
+                if self._tree.needs_rebuild():
+                    self._tree.rebuild(points)
+            lo, hi = element_boxes(points, self._swept_cells[self._owned_tri])
+            qa, qb = self._tree.query_boxes(lo, hi)
+            best, capped, kind, i, j = sweep_caps(
+                x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
+                self.edge_owner, self.entry, self._owned_tri[qa], qb,
+            )  # fmt: skip
+            which = (int(kind), int(i), int(j))
+        best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)
+        self.capped = self.comm.allreduce(int(capped))
+        pair = self.comm.bcast(which, root=rank)
+        self.last_pair = pair if best_all < 1.0 else None
+        self.queries += 1
+        self.seconds += time.perf_counter() - tic
+        return float(best_all)
