@@ -47,8 +47,8 @@
 # `MATDEPTH_KNEE_RESOLUTION` (`coarse`, the demo's default, `default`, `fine` or a number),
 # `MATDEPTH_KNEE_DEGREES` and `MATDEPTH_KNEE_STEPS` override the resolution, the total flexion
 # and the number of steps,
-# `MATDEPTH_KNEE_PREDICTOR` the step predictor (`extrapolate`, the default, `rotation`, or `0` for
-# none; below),
+# `MATDEPTH_KNEE_PREDICTOR` the step predictor (`0`, the default: none; `extrapolate` or
+# `rotation`; below),
 # `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50),
 # `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 100),
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
@@ -105,7 +105,7 @@ quick = os.environ.get("MATDEPTH_DEMO_QUICK", "0") not in ("", "0")
 resolution = os.environ.get("MATDEPTH_KNEE_RESOLUTION", "coarse")
 total_degrees = float(os.environ.get("MATDEPTH_KNEE_DEGREES", 6.0 if quick else 150.0))
 num_steps = int(os.environ.get("MATDEPTH_KNEE_STEPS", 2 if quick else 50))
-predictor = os.environ.get("MATDEPTH_KNEE_PREDICTOR", "extrapolate")
+predictor = os.environ.get("MATDEPTH_KNEE_PREDICTOR", "0")
 predictor = {"1": "extrapolate", "": "0"}.get(predictor, predictor)
 if predictor not in ("extrapolate", "rotation", "0"):
     raise ValueError(f"MATDEPTH_KNEE_PREDICTOR is extrapolate, rotation or 0, not {predictor!r}")
@@ -319,13 +319,25 @@ total_angle = np.radians(total_degrees)
 
 # ### A predictor for each step
 #
+# By default there is none: each step starts from the last converged state, and the tibia's new
+# values come through the first Newton step, which extends them into the tissue by one linear
+# solve at the current tangent. Measured with `benchmarks/bench_knee.py` (serially, the same
+# machine and hour): the first 30° in 10 steps took 93 Newton iterations (11, 11, 10, 7, 8, 7,
+# 12, 10, 11, 6) without a predictor against 159 (29, 9, 23, 16, 11, 12, 13, 16, 16, 14) with
+# the extrapolating one below, the final states alike (penetration 0.077 h, lowest det F 0.527);
+# the first 3° step alone 11 against 29 (37 Newton steps with the two before restarts after a
+# failed GMRES solve on a kept factorisation; the full step of 13 of them inverted elements
+# behind the knee). The full 150° without a predictor: 53 steps, 1,296 Newton iterations in the
+# converged attempts and 4 failed attempts (the last run with the extrapolation: 57 steps,
+# 1,625 and 9). The predictors are kept as options:
+#
 # `ContactProblem` imposes the new Dirichlet values through the first Newton step, so the tibia's
 # 3° increment reaches the tissue glued to it through the linearised step and no element is
 # inverted before Newton starts. Newton still starts far from the answer: the shank has to turn
-# with the tibia. So each step starts from a prediction. Once two converged states are known,
-# the last increment is extrapolated (scaled to the new step): it carries what the tissue did in
-# the last step, the skin sliding and folding behind the knee included. The first step (and the
-# first after `--resume`) spreads the increment of rotation over the leg instead: vertices of
+# with the tibia. The options start each step from a prediction. Once two converged states are
+# known, the last increment is extrapolated (scaled to the new step): it carries what the tissue
+# did in the last step, the skin sliding and folding behind the knee included. The first step (and
+# the first after `--resume`) spreads the increment of rotation over the leg instead: vertices of
 # the shank turn with the tibia, the thigh stays, and across the knee the share of the rotation
 # falls linearly from 1 at the tibial plateau to 0 at the flexion axis. Measured from 96° (coarse
 # leg), a 3° step: rotated, Newton started at |F| = 1.6e4 with the calf's skin pushed into the
