@@ -8,9 +8,10 @@ saved, and the step grows back. What differs is the front-ends':
 
 * :func:`solve_load_steps`: load factors from ``start`` to ``end``, an optional predictor,
   checkpoint and resume, stop requests from its callbacks, callbacks run collectively;
-* :func:`solve_time_steps`: time steps of an integrator (:class:`~fenics_matdepth.Newmark`,
-  :class:`~fenics_matdepth.BackwardEuler`), rejection by penetration or energy change, growth
-  after ``grow_after`` steps without a cut, energies per step.
+* :func:`~fenics_matdepth.time_stepping.solve_time_steps` (in :mod:`fenics_matdepth.time_stepping`):
+  time steps of an integrator (:class:`~fenics_matdepth.Newmark`,
+  :class:`~fenics_matdepth.BackwardEuler`), rejection by penetration, energy change or a
+  collision's entry cap, growth after ``grow_after`` steps without a cut, energies per step.
 """
 
 from __future__ import annotations
@@ -24,23 +25,20 @@ from petsc4py import PETSc
 
 import dolfinx
 import numpy as np
-import ufl
 
-from fenics_matdepth import impacts
 from fenics_matdepth._mpi import collective_error
 from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.kinematics import CellDeterminants
-from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
+from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested
 
 if typing.TYPE_CHECKING:
-    from fenics_matdepth.dynamics import BackwardEuler, Newmark
+    pass
 
 __all__ = [
     "StepEngine",
     "collective_call",
     "solve_load_steps",
-    "solve_time_steps",
     "write_state",
 ]
 
@@ -444,293 +442,3 @@ def solve_load_steps(
 
 
 # -- time steps ------------------------------------------------------------------------------------
-
-
-def _form_value(form, comm, missing: float = 0.0) -> float:
-    if form is None:
-        return missing
-    return comm.allreduce(float(np.real(dolfinx.fem.assemble_scalar(form))))
-
-
-class _TimeSteps(StepEngine):
-    """:func:`solve_time_steps`'s stepping (see there); the caller has set up the initial
-    state and its record."""
-
-    def __init__(self, problem, integrator, t_end, dt, writer, on_step, min_dt, max_dt,
-                 set_time, forms, max_penetration, max_energy_change, grow_after, predict,
-                 progress):  # fmt: skip
-        super().__init__(problem, integrator.t, t_end, "t", progress, on_step)
-        self.integrator, self.writer, self.set_time = integrator, writer, set_time
-        self.forms = forms
-        self.min_dt, self.max_dt = min_dt, max_dt
-        self.max_penetration, self.max_energy_change = max_penetration, max_energy_change
-        self.grow_after, self.predict = grow_after, predict
-        self.contact = getattr(problem, "contact", None)
-        # continuous collision detection: the predictor and the converged step are cut at
-        # their entry cap (truncate, resume_dt: the pending truncation and the step after it)
-        self.collisions = getattr(problem, "collisions", None)
-        self.truncations, self.truncate, self.resume_dt = 0, None, None
-        self.t = integrator.t
-        self.tol = 1e-12 * max(abs(t_end), max_dt)
-        self.step_dt, self.successes = min(float(dt), max_dt), 0
-        #: the midpoint contact term standing in for the operator in the problem's assembler
-        self.step_contact: impacts.MidpointContact | None = None
-        self.contact_force = "endpoint"
-
-    def record(self, step, t, dt, result, cuts, seconds) -> TimeStep:
-        """The record of the state at ``t`` (step 0: the initial state)."""
-        contact, integrator, forms, comm = self.contact, self.integrator, self.forms, self.comm
-        diag = contact.diagnostics() if contact is not None else {}
-
-        kinetic = integrator.kinetic_energy() if integrator.rho is not None else np.nan
-        return TimeStep(
-            step=step, t=t, dt=dt, iterations=result.iterations,
-            residual_norms=result.residual_norms, cuts=cuts, diagnostics=diag,
-            kinetic_energy=kinetic, strain_energy=_form_value(forms["strain"], comm, np.nan),
-            contact_energy=diag.get("energy", 0.0),
-            external_work=_form_value(forms["external"], comm), seconds=seconds,
-            truncations=self.truncations if step else 0,
-        )  # fmt: skip
-
-    def started(self) -> None:
-        self.reporter.message(self.line(self.records[-1]))
-
-    def finished(self) -> bool:
-        return not self.end - self.t > self.tol
-
-    def prepare(self) -> None:
-        t, t_end, integrator = self.t, self.end, self.integrator
-        this_dt = min(self.step_dt, t_end - t)
-        if t_end - (t + this_dt) < self.tol:
-            this_dt = t_end - t
-        self.this_dt = integrator.dt = this_dt
-        if self.set_time is not None:
-            self.set_time(t + this_dt)
-        if self.predict:
-            integrator.predict()
-        else:
-            integrator.restore()
-        self.truncate = None
-        if self.predict and self.collisions is not None:
-            # Newton starts on this side of any surface the prediction would jump through
-            u_prev, u = integrator.u_prev.x.array, self.u.x.array
-            fraction = self.collisions.step_fraction(u_prev, u)
-            if fraction < 1.0:
-                u[:] = u_prev + fraction * (u - u_prev)
-
-    def check(self, result: SolveResult) -> str | None:
-        """Why a converged step is rejected by the step controller, or None (at ``min_dt``
-        the step is accepted anyway). A step whose trajectory takes a surface deeper than the
-        entry tolerance into another it was apart from is truncated at that fraction."""
-        if self.collisions is not None:
-            fraction = self.collisions.step_fraction(self.integrator.u_prev.x.array, self.u.x.array)
-            if fraction < 1.0 and self.this_dt > self.min_dt:
-                self.truncate = fraction
-                return f"truncated at {fraction:.3g} of the step (continuous collision detection)"
-        if not self.this_dt / 2 >= self.min_dt:
-            return None
-        if self.step_contact is not None:
-            self.contact.update()  # the operator was last evaluated at the step's midpoint
-        contact, integrator, forms, comm = self.contact, self.integrator, self.forms, self.comm
-        max_penetration, max_energy_change = self.max_penetration, self.max_energy_change
-        if max_penetration is not None and contact is not None:
-            depth = contact.max_penetration()
-            if depth > max_penetration:
-                return f"penetration {depth:.3e} > max_penetration {max_penetration:.3e}"
-        if max_energy_change is not None:
-            energy = (
-                integrator.trial_kinetic_energy()
-                + _form_value(forms["strain"], comm)
-                + (contact.energy() if contact is not None else 0.0)
-                - _form_value(forms["external"], comm)
-            )
-            change = energy - self.records[-1].total_energy
-            if abs(change) > max_energy_change:
-                return (
-                    f"energy change {change:.3e} beyond max_energy_change {max_energy_change:.3e}"
-                )
-        return None
-
-    def cut(self, failure: str | None) -> None:
-        t, this_dt, min_dt = self.t, self.this_dt, self.min_dt
-        self.successes = 0
-        cause = ""
-        if this_dt / 2 < min_dt:  # giving up: say what the step met
-            cause = impacts.impact_failure_cause(
-                self.contact, self.integrator, self.contact_force, getattr(self, "result", None)
-            )
-        self.integrator.restore()
-        if self.truncate is not None:
-            # at the time of impact (the same on every rank), then on with the step before
-            self.truncations += 1
-            self.resume_dt = self.resume_dt or self.step_dt
-            self.step_dt = max(this_dt * self.truncate, min_dt)
-            self.reporter.message(
-                f"      t {t:.5g}: dt {this_dt:.3g} truncated to {self.step_dt:.3g} (contact)"
-            )
-            return
-        reason = (failure or "failed on another rank").split(";")[0]
-        self.reporter.message(f"      t {t:.5g}: dt {this_dt:.3g} rejected ({reason[:90]})")
-        if this_dt / 2 < min_dt:
-            self.integrator.dt = max(this_dt, min_dt)
-            if self.set_time is not None:
-                self.set_time(t)
-            raise RuntimeError(
-                f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} "
-                f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: "
-                f"{failure} {cause}"
-            )
-        self.step_dt = this_dt / 2
-
-    def accept(self, cuts: int, tic: float) -> TimeStep:
-        if self.step_contact is not None:
-            self.step_contact.accept()
-        self.integrator.advance()
-        self.t = self.integrator.t
-        record = self.record(
-            len(self.records), self.t, self.this_dt, self.result, cuts, time.perf_counter() - tic
-        )
-        self.truncations = 0
-        return record
-
-    def write(self, record: TimeStep) -> None:
-        write_state(self.writer, self.u, self.t)
-
-    def reached(self) -> float:
-        return self.t
-
-    def line(self, r: TimeStep) -> str:
-        return (
-            f"step {r.step:4d}  t {r.t:.5g}  dt {r.dt:.3g}  newton {r.iterations:2d}  "
-            f"cuts {r.cuts}  pairs {r.active_pairs:5d}  max pen {r.max_penetration:.2e}  "
-            f"E kin {r.kinetic_energy:.4e}  strain {r.strain_energy:.4e}  "
-            f"contact {r.contact_energy:.3e}  total {r.total_energy:.6e}  {r.seconds:.2f} s"
-        )
-
-    def grow(self, cuts: int) -> None:
-        if self.resume_dt is not None:  # a truncated step: the rest at the step before
-            self.step_dt, self.resume_dt = self.resume_dt, None
-            return
-        if cuts == 0:
-            self.successes += 1
-            if self.successes >= self.grow_after and self.step_dt < self.max_dt:
-                self.step_dt, self.successes = min(2.0 * self.step_dt, self.max_dt), 0
-
-
-def solve_time_steps(
-    problem: Solvable,
-    integrator: Newmark | BackwardEuler,
-    t_end: float,
-    dt: float,
-    writer=None,
-    on_step: typing.Callable[[TimeStep], None] | None = None,
-    min_dt: float | None = None,
-    max_dt: float | None = None,
-    *,
-    set_time: typing.Callable[[float], None] | None = None,
-    strain_energy: ufl.Form | None = None,
-    external_work: ufl.Form | None = None,
-    max_penetration: float | None = None,
-    max_energy_change: float | None = None,
-    grow_after: int = 2,
-    predict: bool = True,
-    progress: bool = True,
-    contact_force: str | None = None,
-) -> list[TimeStep]:
-    """Integrate ``problem`` in time from the integrator's state to ``t_end`` with step control.
-
-    Each step sets the integrator's dt (and calls ``set_time(t_next)`` for time-dependent
-    loads), starts Newton from the integrator's prediction, and solves. A step that fails (no
-    convergence, NaN, an inverted element raising) or, with ``max_penetration``, converges with a
-    deeper penetration than that, is retried from the last converged state with half the step;
-    after ``grow_after`` successive steps without a cut, the step doubles again, up to
-    ``max_dt``. The last step is shortened to land on ``t_end``.
-
-    With the problem's continuous collision detection (``ContactProblem(..., ccd=True)``,
-    the default), the predictor is cut back where it would take a surface through another, and
-    a converged step whose trajectory (straight, from the last state) takes a boundary vertex
-    or edge deeper than the entry tolerance into a surface it was apart from is truncated at
-    that fraction of the step and solved again (the paper's section 8.2); the step after it
-    resumes the step size from before. ``TimeStep.truncations`` counts them.
-
-    Args:
-        problem: a :class:`~fenics_matdepth.ContactProblem` or
-            :class:`~fenics_matdepth.NonlinearContactProblem` whose residual contains the
-            integrator's inertia term (anything with ``u``, ``solve(raise_on_failure=...)`` and,
-            optionally, ``contact``).
-        integrator: the :class:`Newmark` or :class:`BackwardEuler` of ``problem.u``, holding the
-            initial state (see ``initial``); its ``t`` is the start time.
-        t_end: final time (T).
-        dt: first (and nominal) time step (T).
-        writer: called with each converged state: a ``dolfinx.io.XDMFFile``
-            (``write_function(u, t)``), a ``dolfinx.io.VTXWriter`` (``write(t)``; give it ``u``,
-            ``integrator.v_prev`` and the material depth), or any callable ``writer(t)``.
-        on_step: called with each converged step's record, after ``integrator.advance()``.
-        min_dt: smallest step tried before giving up; default ``dt / 2**10``.
-        max_dt: largest step the controller grows to; default ``dt``.
-        set_time: sets time-dependent data for a time t (collective).
-        strain_energy: UFL form of the stored (strain) energy, reported per step (and, with
-            ``external_work``, the incremental potential given to a problem without energy=).
-        external_work: UFL form of the work of conservative loads (e.g. ``int rho g . u dx``),
-            reported per step and subtracted in ``TimeStep.total_energy``.
-        max_penetration: reject converged steps whose contact penetration exceeds this (L);
-            at ``min_dt`` the step is accepted anyway.
-        max_energy_change: reject converged steps that change the total energy (kinetic +
-            strain + contact - external work) by more than this (F L); at ``min_dt`` the step
-            is accepted anyway. An error control for energy-conserving schemes (average
-            acceleration): where a step does not resolve an impact, it loses or gains energy.
-            Needs the integrator's ``rho`` and ``strain_energy``.
-        grow_after: successful steps before dt doubles.
-        predict: start each Newton solve from ``integrator.predict()`` (else from the last
-            state).
-        progress: report each converged step on rank 0: a progress bar in a terminal or a
-            notebook, one printed line otherwise (``MATDEPTH_PROGRESS=lines`` forces lines).
-        contact_force: the contact force in the step equation: ``"midpoint"``
-            (:class:`~fenics_matdepth.impacts.MidpointContact`: the trapezoidal rule's average
-            contact force is the one at the step's midpoint, so impacts pump no energy in; needs
-            average-acceleration Newmark and a problem with an ``assembler``), or
-            ``"endpoint"`` (the force at the end of the step, like every other internal
-            force). Default: ``"midpoint"`` where it applies, ``"endpoint"`` otherwise
-            (backward Euler, other Newmark parameters, wrapped problems).
-
-    Returns:
-        The initial state (step 0) and every converged step, in time order.
-
-    Raises:
-        RuntimeError: if dt falls below ``min_dt`` on failures; ``u`` and the integrator then
-            hold the last converged state, whose time the message gives.
-    """
-    u = problem.u
-    if integrator.u is not u:
-        raise ValueError("the integrator must be built on the problem's unknown (problem.u)")
-    if not (np.isfinite(dt) and dt > 0.0):
-        raise ValueError(f"dt must be a positive number, got {dt}")
-    if max_energy_change is not None and (strain_energy is None or integrator.rho is None):
-        raise ValueError("max_energy_change needs strain_energy= and the integrator's rho")
-    if grow_after < 1:
-        raise ValueError(f"grow_after must be >= 1, got {grow_after}")
-    max_dt = float(dt) if max_dt is None else float(max_dt)
-    min_dt = float(dt) / 2**10 if min_dt is None else float(min_dt)
-    if not 0.0 < min_dt <= max_dt:
-        raise ValueError(f"need 0 < min_dt <= max_dt, got min_dt={min_dt}, max_dt={max_dt}")
-    forms = {
-        "strain": dolfinx.fem.form(strain_energy) if strain_energy is not None else None,
-        "external": dolfinx.fem.form(external_work) if external_work is not None else None,
-    }
-    engine = _TimeSteps(
-        problem, integrator, t_end, dt, writer, on_step, min_dt, max_dt, set_time, forms,
-        max_penetration, max_energy_change, grow_after, predict, progress,
-    )  # fmt: skip
-    t = integrator.t
-    u.x.array[:] = integrator.u_prev.x.array
-    if engine.contact is not None:
-        engine.contact.update()
-    if set_time is not None:
-        set_time(t)
-    initial = SolveResult(True, 0, 0, np.zeros(0))
-    engine.records.append(engine.record(0, t, 0.0, initial, 0, 0.0))
-    impacts.hand_incremental_potential(problem, integrator, strain_energy, external_work)
-    engine.contact_force = impacts.default_contact_force(integrator, contact_force, problem)
-    with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
-        engine.step_contact = midpoint
-        return engine.run()
