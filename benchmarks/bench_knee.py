@@ -188,7 +188,7 @@ def main() -> None:
     )  # fmt: skip
     print()
     print(f"knee {args.degrees:g} deg in {args.steps} steps on {args.processes} process(es); "
-          f"predictor {env.get('MATDEPTH_KNEE_PREDICTOR', 'extrapolate')}")  # fmt: skip
+          f"predictor {env.get('MATDEPTH_KNEE_PREDICTOR', '0')}")  # fmt: skip
     print(f"  reached {summary['reached_degrees']:.1f} deg, completed {summary['completed']}, "
           f"{len(steps)} steps, {sum(len(a) - 1 for a in steps)} cuts")  # fmt: skip
     print(f"  Newton iterations: {total} in all (failed attempts included), per step "

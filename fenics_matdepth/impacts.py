@@ -66,17 +66,19 @@ def _takes_midpoint(problem) -> bool:
 
 def default_contact_force(integrator, contact_force: str | None, problem=None) -> str:
     """The contact force a time step uses: ``contact_force`` checked, or by default
-    ``"midpoint"`` for average-acceleration Newmark and ``"endpoint"`` for any other
-    integrator (backward Euler, whose end-of-step contact force only dissipates) and for a
-    problem (given) without an assembler and a contact operator (a user's wrapper).
+    ``"endpoint"``. The midpoint force is asked for, not the default: it removes the energy
+    that flat faces meeting gain with the end-of-step force (two cubes corner-on: 2.61 times the
+    start with it, 1.015 with the midpoint force), but it gains where a contact starts late in a
+    step, which the midpoint does not see: a step ended at the impact by the collision detection
+    (a cube at 30 per second onto a plate, +15 % in that step) and a ball bouncing on a plate
+    (+29 % of the drop's energy), where the end-of-step force gains nothing.
 
     Raises:
         ValueError: for an unknown name, or ``"midpoint"`` with another integrator than
             average-acceleration Newmark or (given) a problem it cannot reach.
     """
     if contact_force is None:
-        reaches = problem is None or _takes_midpoint(problem)
-        return "midpoint" if _is_trapezoidal(integrator) and reaches else "endpoint"
+        return "endpoint"
     if contact_force == "midpoint" and problem is not None and not _takes_midpoint(problem):
         raise ValueError(
             'contact_force="midpoint" needs a ContactProblem or NonlinearContactProblem (a '
@@ -202,8 +204,8 @@ def impact_failure_cause(
     )
     if contact_force == "endpoint" and _is_trapezoidal(integrator):
         sentence += (
-            'With contact_force="endpoint" average-acceleration Newmark creates energy at '
-            'impacts; contact_force="midpoint" (the default) does not. '
+            'With contact_force="endpoint" (the default) average-acceleration Newmark creates '
+            'energy where flat faces meet; contact_force="midpoint" does not there. '
         )
     return sentence + (
         "A smaller penalty (propose_penalty's factor) softens the impact; a smaller min_dt "

@@ -267,8 +267,9 @@ def solve_time_steps(
             contact force is the one at the step's midpoint, so impacts pump no energy in; needs
             average-acceleration Newmark and a problem with an ``assembler``), or
             ``"endpoint"`` (the force at the end of the step, like every other internal
-            force). Default: ``"midpoint"`` where it applies, ``"endpoint"`` otherwise
-            (backward Euler, other Newmark parameters, wrapped problems).
+            force). Default: ``"endpoint"``; ``"midpoint"`` removes the energy flat faces
+            meeting gain, but gains where a contact starts late in a step (``docs/dynamics.md``,
+            "Energy at impacts").
 
     Returns:
         The initial state (step 0) and every converged step, in time order.

@@ -115,14 +115,14 @@ def test_midpoint_contact_derivatives_and_value():
     mc.destroy()
 
 
-def test_newmark_cubes_impact_keeps_energy_by_default():
+def test_newmark_cubes_impact_keeps_energy_with_the_midpoint_force():
     """Two cubes meet corner-on (offset sideways by 0.1): with average-acceleration Newmark's
-    default (midpoint) contact force the total energy stays within 5 % of its start at every
-    step (3.0 % measured on this coarse mesh, 1.5 % at 5^3 cuboids per cube; the end-of-step
-    force fails the impact step here, and gains 2.4 times the energy at 5^3) and ends within
-    1 %; linear momentum stays to round-off."""
+    midpoint contact force (``contact_force="midpoint"``) the total energy stays within 5 % of
+    its start at every step (3.0 % measured on this coarse mesh, 1.5 % at 5^3 cuboids per
+    cube; the end-of-step force fails the impact step here, and gains 2.4 times the energy at
+    5^3) and ends within 1 %; linear momentum stays to round-off."""
     cubes = _Cubes(3, 0.1, 0.5, lambda u: fm.Newmark(u, 0.01, rho=RHO))
-    history, energy, drift = cubes.run(0.4, 0.01)
+    history, energy, drift = cubes.run(0.4, 0.01, contact_force="midpoint")
     assert max(r.active_pairs for r in history) > 0  # they met
     assert history[-1].active_pairs == 0  # and separated
     assert drift <= 1e-12, drift
@@ -188,12 +188,12 @@ def test_time_steps_hand_the_problem_its_incremental_potential():
     """A problem built without ``energy=`` gets the integrator's incremental potential (its
     energy line search on) when that potential's derivative is its residual, and keeps its
     residual line search when the residual has a term the potential lacks (damping); the
-    default run through the face-on impact converges at every step either way."""
+    run through the face-on impact (midpoint force) converges at every step either way."""
     for damping in (None, 0.5):
         cubes = _Cubes(2, 0.0, 1.0, lambda u: fm.Newmark(u, 0.05, rho=RHO), energy=False,
                        damping=damping)  # fmt: skip
         assert cubes.problem.assembler.energy_form is None
-        history, _, drift = cubes.run(0.3, 0.05)
+        history, _, drift = cubes.run(0.3, 0.05, contact_force="midpoint")
         assert (cubes.problem.assembler.energy_form is not None) == (damping is None)
         assert max(r.active_pairs for r in history) > 0 and sum(r.cuts for r in history) == 0
         assert drift <= 1e-12, drift
@@ -210,7 +210,7 @@ def test_midpoint_contact_force_with_the_dolfinx_newton_solver():
     cubes.problem = fm.NonlinearContactProblem(
         cubes.integrator.inertia(v) + elastic, cubes.u, cubes.contact
     )
-    history, energy, drift = cubes.run(0.6, 0.05)
+    history, energy, drift = cubes.run(0.6, 0.05, contact_force="midpoint")
     assert max(r.active_pairs for r in history) > 0
     assert drift <= 1e-12, drift
     assert energy.max() <= 1.0 + 1e-3, energy.max()
