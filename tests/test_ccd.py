@@ -107,13 +107,13 @@ def _random_vt(rng):
 
 
 def test_vertex_triangle_random_trajectories_are_never_late():
-    """120 random vertex-triangle trajectories, min distance 0.01 and 0.05: the CCD time is
+    """60 random vertex-triangle trajectories, min distance 0.01 and 0.05: the CCD time is
     never later than the reference (within the reference's bisection accuracy 1e-9) and,
     where the reference finds an impact, earlier by less than 2e-3 of the step."""
     rng = np.random.default_rng(7)
     hits = 0
     for min_distance in (0.01, 0.05):
-        for _ in range(60):
+        for _ in range(30):
             p0, tri0, p1, tri1 = _random_vt(rng)
             ref, dmin = _reference_toi(_vt_distance(p0, tri0, p1, tri1), min_distance, 400)
             got = vertex_triangle_time_of_impact(p0, tri0, p1, tri1, min_distance)[0]
@@ -124,7 +124,7 @@ def test_vertex_triangle_random_trajectories_are_never_late():
             else:
                 # the sampling misses only impacts of grazing trajectories
                 assert not np.isfinite(got) or dmin - min_distance < 1e-2, (got, dmin)
-    assert hits > 60  # most trajectories hit: the check has teeth
+    assert hits > 30  # most trajectories hit: the check has teeth
 
 
 def test_edge_edge_random_trajectories_are_never_late():
