@@ -265,7 +265,7 @@ class FreeBodyDamping:
     Args:
         contact: the problem's contact operator.
         bcs: its Dirichlet conditions.
-        assembler: its assembler (gets the :class:`ProximalTerm`).
+        assembler: its assembler (gets the :class:`~fenics_matdepth.free_bodies.ProximalTerm`).
         enabled: False: find nothing, damp nothing.
         decrease: the factor on k from one damped solve to the next
             (:class:`~fenics_matdepth.RigidModeDamping`'s).

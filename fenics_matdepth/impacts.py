@@ -304,7 +304,7 @@ class MidpointContact:
         return 4.0 * self.operator.energy() - self.force.dot(self.u.x.petsc_vec)
 
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
-        """As :meth:`ContactOperator.set_bcs`."""
+        """As :meth:`~fenics_matdepth.ContactOperator.set_bcs`."""
         self.operator.set_bcs(bcs)
 
     def pattern_needs_rebuild(self) -> bool:
@@ -312,7 +312,8 @@ class MidpointContact:
         return self.operator.pattern_needs_rebuild()
 
     def create_matrix(self, a, bcs=None) -> PETSc.Mat:
-        """As :meth:`ContactOperator.create_matrix`, for the midpoint's couplings."""
+        """As :meth:`~fenics_matdepth.ContactOperator.create_matrix`, for the midpoint's
+        couplings."""
         return self.operator.create_matrix(a, bcs)
 
     def destroy(self) -> None:

@@ -22,12 +22,12 @@ from fenics_matdepth._constants import FLOAT
 
 __all__ = ["OPEN", "SLIP", "STICK", "contact_fields"]
 
-#: status: no contact at the vertex
+#: The status of a vertex with no contact.
 OPEN = 0
-#: status: in contact, sticking (most of the vertex's friction points slip less than the slip
-#: tolerance)
+#: The status of a vertex in contact and sticking (most of its friction points slip less than
+#: the slip tolerance).
 STICK = 1
-#: status: in contact, slipping (frictionless contact always slips)
+#: The status of a vertex in contact and slipping (frictionless contact always slips).
 SLIP = 2
 
 
@@ -44,7 +44,7 @@ def _vertex_sums(comm: MPI.Comm, n: int, verts: np.ndarray, xi: np.ndarray, valu
 
 def contact_fields(operator: typing.Any) -> dict[str, dolfinx.fem.Function]:
     """The contact fields of ``operator`` (a :class:`~fenics_matdepth.ContactOperator` with
-    area integration) at its last update; see :meth:`ContactOperator.fields`."""
+    area integration) at its last update; see :meth:`~fenics_matdepth.ContactOperator.fields`."""
     op = operator
     s, comm, n = op.surface, op.comm, op.num_vertices
     # the area around each boundary vertex, a third of each triangle's (current) area

@@ -309,7 +309,7 @@ class FrictionMixin:
 
         - ``pressure`` (F/L^2): the normal traction ``(eps g + p_aug) |grad g|`` averaged on
           each boundary vertex's hat function over the boundary triangles around it;
-        - ``penetration`` (L): :meth:`vertex_penetration`;
+        - ``penetration`` (L): :meth:`~fenics_matdepth.ContactOperator.vertex_penetration`;
         - ``traction`` (F/L^2, vector): the contact traction on the surface, normal plus
           friction, averaged the same way;
         - ``slip`` (L, vector): the slip of the surface relative to the body it is in since the
@@ -327,7 +327,8 @@ class FrictionMixin:
 
     def friction_diagnostics(self) -> dict[str, typing.Any]:
         """The friction of the step at the last update (collective; empty without friction;
-        :meth:`diagnostics` includes it, and so the records of the stepping loops).
+        :meth:`~fenics_matdepth.ContactOperator.diagnostics` includes it, and so the records of
+        the stepping loops).
 
         Returns:
             ``friction_dissipation``: ``sum_q c_q f1(y_q) y_q``, the work of the friction
