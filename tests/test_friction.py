@@ -192,17 +192,22 @@ PULL = [0.002, 0.004, 0.04, 0.07, 0.1]
 MU = 0.3
 
 
+def _block_on_slab(comm: MPI.Comm):
+    """A 0.6 x 0.6 x 0.4 block standing on a 1.5 x 1.5 x 0.5 slab, one mesh of two bodies."""
+    return merged_mesh(
+        comm,
+        box_tetrahedra((6, 6, 2), (0.0, 0.0, 0.0), (1.5, 1.5, 0.5)),
+        box_tetrahedra((4, 4, 2), (0.3, 0.45, 0.5), (0.6, 0.6, 0.4)),
+    )
+
+
 def _pulled_block(comm: MPI.Comm) -> list[dict]:
     """A 0.6 x 0.6 x 0.4 block on a 1.5 x 1.5 x 0.5 slab (neo-Hookean, E = 1, nu = 0.3):
     the slab's bottom clamped, the block's top pressed down by PRESS and then pulled along x.
     Per converged step: the friction force T and the normal force N on the block (from the
     residuals with and without friction), the work of the friction forces over the step's
     displacement and the operator's friction diagnostics."""
-    mesh = merged_mesh(
-        comm,
-        box_tetrahedra((6, 6, 2), (0.0, 0.0, 0.0), (1.5, 1.5, 0.5)),
-        box_tetrahedra((4, 4, 2), (0.3, 0.45, 0.5), (0.6, 0.6, 0.4)),
-    )
+    mesh = _block_on_slab(comm)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     residual, psi = neo_hookean_residual(u)
@@ -342,14 +347,10 @@ RHO, YOUNGS, GRAVITY, SLIP_TOL = 1.0, 1.0e3, 10.0, 5e-5
 
 def _block_on_incline(comm: MPI.Comm, tan_theta: float, t_end: float = 0.4, dt: float = 0.02):
     """The block of :func:`_pulled_block` resting on the clamped slab, gravity tilted by theta
-    from -z towards +x (the incline), average-acceleration Newmark from rest, the block sunk
+    from -z towards +x (the incline), backward Euler from rest, the block sunk
     by the penetration that carries its weight. Returns the times, the block's mean x velocity
     and the number of slipping friction points of each step."""
-    mesh = merged_mesh(
-        comm,
-        box_tetrahedra((6, 6, 2), (0.0, 0.0, 0.0), (1.5, 1.5, 0.5)),
-        box_tetrahedra((4, 4, 2), (0.3, 0.45, 0.5), (0.6, 0.6, 0.4)),
-    )
+    mesh = _block_on_slab(comm)
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     v = ufl.TestFunction(V)
