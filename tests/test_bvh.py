@@ -12,6 +12,9 @@ from fenics_matdepth.geometry.distance import (
     point_triangle_distance,
 )
 
+# pure numba/numpy: every rank would run the same computation, so the serial pass runs it
+pytestmark = pytest.mark.serial
+
 # ------------------------------------------------------------------------------------------
 # independent references (plain numpy, a different algorithm from the kernels)
 # ------------------------------------------------------------------------------------------

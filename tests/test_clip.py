@@ -28,6 +28,9 @@ from fenics_matdepth.geometry.clip import (
 )
 from fenics_matdepth.geometry.intersect import _BLOCK, _decide_block, intersect_pairs, near_pairs
 
+# pure numba/numpy: every rank would run the same computation, so the serial pass runs it
+pytestmark = pytest.mark.serial
+
 # Float clipping works on barycentrics computed in floating point (error ~ 1e-16 times the
 # tetrahedron's condition number, at most ~1e3 for the configurations drawn here; values within
 # CLIP_TOL of zero are snapped to zero): on configurations that are not near-coplanar the area

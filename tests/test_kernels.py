@@ -19,6 +19,9 @@ from fenics_matdepth.contact.kernels.collocation import collocation_pairs
 from fenics_matdepth.contact.kernels.drivers import area_pairs, area_pairs_into, intersecting
 from fenics_matdepth.geometry.clip import MAX_POLYGON_VERTICES, _intersection_polygon, clip_shift
 
+# pure numba/numpy: every rank would run the same computation, so the serial pass runs it
+pytestmark = pytest.mark.serial
+
 EPS = 3.0  # penalty (pressure / length)
 # Relative errors (max-norm, relative to the largest entry) allowed against 4th-order central
 # differences with h = 1e-4: truncation ~ h^4 |f^(5)| ~ 1e-15 and rounding ~ 1e-16 / h ~ 1e-12
@@ -346,7 +349,6 @@ def _path_forces(kind, steps=10_000, length=3.2):
     return forces, slopes, ds
 
 
-@pytest.mark.serial
 def test_force_continuity_area_vs_collocation():
     """Slide a triangle through the two tetrahedra in 10^4 steps (it enters across exterior
     faces, crosses the shared face where grad g turns, leaves): every per-step change of the
