@@ -178,7 +178,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
             ``contact_update`` (gather, refit, pair search), ``contact_assembly`` (pair kernels
             and insertion) and ``linear_solve`` (factorisation or preconditioner set-up, and
-            the solve), and ``ccd`` (continuous collision detection of the steps).
+            the solve), and ``ccd`` (continuous collision detection of the Newton steps; 0
+            with ``ccd=False``): the keys of ``system_assembler.TIMING_KEYS``.
         collisions: the :class:`~fenics_matdepth.contact.ccd.ContinuousCollision` of the
             boundary (None with ``ccd=False``); ``solve_time_steps`` also truncates time steps
             with it.
@@ -215,8 +216,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
         self._watch = self.assembler.watch
         self.timings = dict(self._watch.totals)
-        if self.collisions is not None:
-            self.timings["ccd"] = 0.0
         self.prefix = petsc_options_prefix
         self._create_vectors()
         user = petsc_options or {}
@@ -311,7 +310,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         if self.collisions is None:
             return changed
         x_array = x.getArray(readonly=True)
-        fraction = self.collisions.step_fraction(x_array, x_array - y.getArray(readonly=True))
+        with self._watch("ccd"):
+            fraction = self.collisions.step_fraction(x_array, x_array - y.getArray(readonly=True))
         if fraction < 1.0:
             y.scale(fraction)
             self.ccd_caps += 1
@@ -377,7 +377,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
                     self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                     self._merit_is_energy, self._last_norm = True, np.inf
                     self.shifted_steps = self.ccd_caps = 0
-                    ccd_seconds = self.collisions.seconds if self.collisions else 0.0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
                     # the load may have changed since
@@ -420,8 +419,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._carry_backoff.record(failed=carried_failed, succeeded=self._carried)
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
-        if self.collisions is not None:
-            self.timings["ccd"] = self.collisions.seconds - ccd_seconds
         reason = int(self.snes.getConvergedReason())
         if reason > 0:
             self._carried_revision = self.contact.penalty_revision
