@@ -468,7 +468,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
     :class:`~fenics_matdepth.system_assembler.SystemAssembler` as
     :class:`ContactProblem`'s. :meth:`attach` also installs the solution update: the Newton
     step (times the solver's relaxation parameter) is halved until no element is inverted
-    (det F > 0 everywhere), at most ``MAX_STEP_HALVINGS`` times.
+    (det F > 0 everywhere), at most ``MAX_STEP_HALVINGS`` times, after the continuous collision
+    detection has capped it (``ccd``, as in :class:`ContactProblem`'s line search).
 
     Args:
         F: the user's residual form, linear in the test function.
@@ -478,6 +479,15 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         J: Jacobian form; default ``ufl.derivative(F, u)``.
         form_compiler_options, jit_options: passed on to dolfinx's form compilation.
         damp_free_bodies: as for :class:`ContactProblem`.
+        ccd: continuous collision detection of each Newton update, as for
+            :class:`ContactProblem` (the update is shortened to the entry cap; time steps
+            are truncated by ``solve_time_steps``); on by default.
+        ccd_entry: the entry tolerance, as a fraction of the local boundary edge length.
+
+    Attributes:
+        collisions: the :class:`~fenics_matdepth.contact.ccd.ContinuousCollision` of the
+            boundary (None with ``ccd=False``).
+        ccd_caps: Newton updates of the last solve that the collision detection shortened.
     """
 
     def __init__(
@@ -490,6 +500,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         form_compiler_options: dict | None = None,
         jit_options: dict | None = None,
         damp_free_bodies: bool = True,
+        ccd: bool = True,
+        ccd_entry: float = ENTRY_FRACTION,
     ):
         _check_problem_inputs(u, contact, bcs)
         super().__init__(
@@ -503,6 +515,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         self._watch = self.assembler.watch
         self._solver = None
         self._trial = u.x.petsc_vec.duplicate()
+        self.collisions = ContinuousCollision(contact.surface, ccd_entry) if ccd else None
+        self.ccd_caps = 0
         #: residual norm at each residual evaluation of the current solve
         self.residual_norms: list[float] = []
 
@@ -587,8 +601,19 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         self.assembler.jacobian(A)
 
     def _update(self, solver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
-        """x -= relaxation * dx, the step halved while it would invert an element."""
+        """x -= relaxation * dx, shortened to the collision detection's entry cap, then halved
+        while it would invert an element."""
         step = solver.relaxation_parameter
+        if self.collisions is not None:
+            x.copy(self._trial)
+            self._trial.axpy(-step, dx)
+            with self._watch("ccd"):
+                fraction = self.collisions.step_fraction(
+                    x.getArray(readonly=True), self._trial.getArray(readonly=True)
+                )
+            if fraction < 1.0:
+                step *= fraction
+                self.ccd_caps += 1
         for _ in range(MAX_STEP_HALVINGS):
             x.copy(self._trial)
             self._trial.axpy(-step, dx)
@@ -615,7 +640,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         if self._solver is None:
             self.newton_solver()
         self.residual_norms = []
-        self.assembler.rejected_states = 0
+        self.assembler.rejected_states = self.ccd_caps = 0
         try:
             iterations, converged = self._solver.solve(self.u)
         except RuntimeError:
