@@ -166,7 +166,7 @@ bcs = [fem.dirichletbc(np.zeros(3), support, V)]
 # +
 u = fem.Function(V, name="displacement")
 v = ufl.TestFunction(V)
-dt = 0.01  # s: the nominal step
+dt = float(os.environ.get("MATDEPTH_RODS_DT", "0.01"))  # s: the nominal step
 integrator = fm.Newmark(u, dt, beta=0.3025, gamma=0.6, rho=density)
 F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
 psi = fm.materials.neo_hookean(F_def, mu, kappa)
@@ -189,6 +189,7 @@ use_energy = os.environ.get("MATDEPTH_RODS_ENERGY_LINE_SEARCH", "0") not in ("",
 problem = fm.ContactProblem(
     residual, u, contact, bcs=bcs, energy=incremental if use_energy else None,
     petsc_options_prefix="falling_rods_", petsc_options={"snes_rtol": 1e-6, "snes_atol": 1e-9},
+    ccd=os.environ.get("MATDEPTH_RODS_CCD", "1") not in ("", "0"),
 )  # fmt: skip
 report(f"penalty {penalty:.3g} Pa/m; {contact.num_bodies} bodies")
 # -
@@ -382,6 +383,7 @@ summary = {
     "length": geometry.length,
     "steps": len(steps),
     "cuts": cuts,
+    "truncations": sum(r.truncations for r in steps),
     "t_end": history[-1].t,
     "iterations": iterations.tolist(),
     "dt": [r.dt for r in steps],

@@ -178,7 +178,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         timings: seconds spent in the last :meth:`solve`, split into ``bulk_assembly``,
             ``contact_update`` (gather, refit, pair search), ``contact_assembly`` (pair kernels
             and insertion) and ``linear_solve`` (factorisation or preconditioner set-up, and
-            the solve), and ``ccd`` (continuous collision detection of the steps).
+            the solve), and ``ccd`` (continuous collision detection of the Newton steps; 0
+            with ``ccd=False``): the keys of ``system_assembler.TIMING_KEYS``.
         collisions: the :class:`~fenics_matdepth.contact.ccd.ContinuousCollision` of the
             boundary (None with ``ccd=False``); ``solve_time_steps`` also truncates time steps
             with it.
@@ -215,8 +216,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
         self._watch = self.assembler.watch
         self.timings = dict(self._watch.totals)
-        if self.collisions is not None:
-            self.timings["ccd"] = 0.0
         self.prefix = petsc_options_prefix
         self._create_vectors()
         user = petsc_options or {}
@@ -311,7 +310,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         if self.collisions is None:
             return changed
         x_array = x.getArray(readonly=True)
-        fraction = self.collisions.step_fraction(x_array, x_array - y.getArray(readonly=True))
+        with self._watch("ccd"):
+            fraction = self.collisions.step_fraction(x_array, x_array - y.getArray(readonly=True))
         if fraction < 1.0:
             y.scale(fraction)
             self.ccd_caps += 1
@@ -377,7 +377,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
                     self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                     self._merit_is_energy, self._last_norm = True, np.inf
                     self.shifted_steps = self.ccd_caps = 0
-                    ccd_seconds = self.collisions.seconds if self.collisions else 0.0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
                     # the load may have changed since
@@ -420,8 +419,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._carry_backoff.record(failed=carried_failed, succeeded=self._carried)
         self._set_state(self._x)
         self.timings = dict(self._watch.totals)
-        if self.collisions is not None:
-            self.timings["ccd"] = self.collisions.seconds - ccd_seconds
         reason = int(self.snes.getConvergedReason())
         if reason > 0:
             self._carried_revision = self.contact.penalty_revision
@@ -471,7 +468,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
     :class:`~fenics_matdepth.system_assembler.SystemAssembler` as
     :class:`ContactProblem`'s. :meth:`attach` also installs the solution update: the Newton
     step (times the solver's relaxation parameter) is halved until no element is inverted
-    (det F > 0 everywhere), at most ``MAX_STEP_HALVINGS`` times.
+    (det F > 0 everywhere), at most ``MAX_STEP_HALVINGS`` times, after the continuous collision
+    detection has capped it (``ccd``, as in :class:`ContactProblem`'s line search).
 
     Args:
         F: the user's residual form, linear in the test function.
@@ -481,6 +479,15 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         J: Jacobian form; default ``ufl.derivative(F, u)``.
         form_compiler_options, jit_options: passed on to dolfinx's form compilation.
         damp_free_bodies: as for :class:`ContactProblem`.
+        ccd: continuous collision detection of each Newton update, as for
+            :class:`ContactProblem` (the update is shortened to the entry cap; time steps
+            are truncated by ``solve_time_steps``); on by default.
+        ccd_entry: the entry tolerance, as a fraction of the local boundary edge length.
+
+    Attributes:
+        collisions: the :class:`~fenics_matdepth.contact.ccd.ContinuousCollision` of the
+            boundary (None with ``ccd=False``).
+        ccd_caps: Newton updates of the last solve that the collision detection shortened.
     """
 
     def __init__(
@@ -493,6 +500,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         form_compiler_options: dict | None = None,
         jit_options: dict | None = None,
         damp_free_bodies: bool = True,
+        ccd: bool = True,
+        ccd_entry: float = ENTRY_FRACTION,
     ):
         _check_problem_inputs(u, contact, bcs)
         super().__init__(
@@ -506,6 +515,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         self._watch = self.assembler.watch
         self._solver = None
         self._trial = u.x.petsc_vec.duplicate()
+        self.collisions = ContinuousCollision(contact.surface, ccd_entry) if ccd else None
+        self.ccd_caps = 0
         #: residual norm at each residual evaluation of the current solve
         self.residual_norms: list[float] = []
 
@@ -590,8 +601,19 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         self.assembler.jacobian(A)
 
     def _update(self, solver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
-        """x -= relaxation * dx, the step halved while it would invert an element."""
+        """x -= relaxation * dx, shortened to the collision detection's entry cap, then halved
+        while it would invert an element."""
         step = solver.relaxation_parameter
+        if self.collisions is not None:
+            x.copy(self._trial)
+            self._trial.axpy(-step, dx)
+            with self._watch("ccd"):
+                fraction = self.collisions.step_fraction(
+                    x.getArray(readonly=True), self._trial.getArray(readonly=True)
+                )
+            if fraction < 1.0:
+                step *= fraction
+                self.ccd_caps += 1
         for _ in range(MAX_STEP_HALVINGS):
             x.copy(self._trial)
             self._trial.axpy(-step, dx)
@@ -618,7 +640,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         if self._solver is None:
             self.newton_solver()
         self.residual_norms = []
-        self.assembler.rejected_states = 0
+        self.assembler.rejected_states = self.ccd_caps = 0
         try:
             iterations, converged = self._solver.solve(self.u)
         except RuntimeError:

@@ -25,12 +25,14 @@ from fenics_matdepth.kinematics import CellDeterminants
 
 __all__ = ["TIMING_KEYS", "SystemAssembler"]
 
-#: Names of the per-solve time split (seconds) kept in ``ContactProblem.timings``.
+#: Names of the per-solve time split (seconds) kept in ``ContactProblem.timings``; ``ccd``
+#: is the continuous collision detection of the Newton steps (0 with ``ccd=False``).
 TIMING_KEYS = (
     "bulk_assembly",
     "contact_update",
     "contact_assembly",
     "linear_solve",
+    "ccd",
 )
 
 

@@ -179,25 +179,18 @@ def _inner_side(x0, p, a, b, c):
 
 
 @njit(cache=True)
-def _pair_times(kind, x0, x1, min_distance, tol, max_steps):
-    """Time of impact of each pair of the (n, 4, 3) coordinate blocks (inf: none)."""
+def _pairs(kind, x0, x1, caps, entry, min_distance, tol, max_steps):
+    """Per pair of the (n, 4, 3) coordinate blocks: the entry cap (``caps``; tolerance
+    ``entry[i]``) or the time of impact at ``min_distance`` (inf: none)."""
     n = x0.shape[0]
     out = np.empty(n, dtype=x0.dtype)
     xs = np.empty((4, 3), dtype=x0.dtype)
     for i in range(n):
-        t, _, _, hit = _advance(kind, x0[i], x1[i], xs, min_distance, tol, max_steps)
-        out[i] = t if hit else np.inf
-    return out
-
-
-@njit(cache=True)
-def _pair_caps(kind, x0, x1, entry, max_steps):
-    """Entry cap of each pair of the (n, 4, 3) coordinate blocks."""
-    n = x0.shape[0]
-    out = np.empty(n, dtype=x0.dtype)
-    xs = np.empty((4, 3), dtype=x0.dtype)
-    for i in range(n):
-        out[i] = _entry_cap(kind, x0[i], x1[i], xs, entry[i], max_steps)
+        if caps:
+            out[i] = _entry_cap(kind, x0[i], x1[i], xs, entry[i], max_steps)
+        else:
+            t, _, _, hit = _advance(kind, x0[i], x1[i], xs, min_distance, tol, max_steps)
+            out[i] = t if hit else np.inf
     return out
 
 
@@ -208,6 +201,15 @@ def _gather4(x, i0, i1, i2, i3, out):
         out[1, k] = x[i1, k]
         out[2, k] = x[i2, k]
         out[3, k] = x[i3, k]
+
+
+@njit(inline="always")
+def _primitive_cap(kind, x0, x1, i0, i1, i2, i3, blk0, blk1, xs, entry, max_steps):
+    """Entry cap of the pair of rows (i0, i1, i2, i3) of the positions ``x0``, ``x1`` (the
+    vertex and the triangle, or the two edges), through the scratch blocks."""
+    _gather4(x0, i0, i1, i2, i3, blk0)
+    _gather4(x1, i0, i1, i2, i3, blk1)
+    return _entry_cap(kind, blk0, blk1, xs, entry, max_steps)
 
 
 @njit(cache=True)
@@ -244,9 +246,8 @@ def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, p
                 continue
             if _inner_side(x0, v, ta0, ta1, ta2):
                 continue
-            _gather4(x0, v, ta0, ta1, ta2, blk0)
-            _gather4(x1, v, ta0, ta1, ta2, blk1)
-            cap = _entry_cap(VERTEX_TRIANGLE, blk0, blk1, xs, e, max_steps)
+            cap = _primitive_cap(VERTEX_TRIANGLE, x0, x1, v, ta0, ta1, ta2, blk0, blk1, xs, e,
+                                 max_steps)  # fmt: skip
             if cap < 1.0:
                 capped += 1
                 if cap < best:
@@ -266,9 +267,8 @@ def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, p
                 q0, q1 = edges[eb, 0], edges[eb, 1]
                 if p0 == q0 or p0 == q1 or p1 == q0 or p1 == q1:
                     continue
-                _gather4(x0, p0, p1, q0, q1, blk0)
-                _gather4(x1, p0, p1, q0, q1, blk1)
-                cap = _entry_cap(EDGE_EDGE, blk0, blk1, xs, e, max_steps)
+                cap = _primitive_cap(EDGE_EDGE, x0, x1, p0, p1, q0, q1, blk0, blk1, xs, e,
+                                     max_steps)  # fmt: skip
                 if cap < 1.0:
                     capped += 1
                     if cap < best:
@@ -345,7 +345,8 @@ def _times(x0, x1, kind, min_distance, tol) -> np.ndarray:
         tol = 1e-6 * max(float(extent), 1e-300)
     if not tol > 0.0:
         raise ValueError(f"tol must be > 0, got {tol}")
-    return _pair_times(kind, x0, x1, float(min_distance), float(tol), 100 * MAX_ADVANCES)
+    entry = np.zeros(x0.shape[0], dtype=FLOAT)
+    return _pairs(kind, x0, x1, False, entry, float(min_distance), float(tol), 100 * MAX_ADVANCES)
 
 
 def entry_fraction(
@@ -378,7 +379,7 @@ def entry_fraction(
     if np.any(~(entry > 0.0)):
         raise ValueError("entry tolerances must be > 0")
     code = VERTEX_TRIANGLE if n_first == 1 else EDGE_EDGE
-    return _pair_caps(code, x0, x1, entry, MAX_ADVANCES)
+    return _pairs(code, x0, x1, True, entry, 0.0, 1.0, MAX_ADVANCES)
 
 
 def sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, pair_a, pair_b):
