@@ -50,7 +50,11 @@
 # ## Implementation
 #
 # `MATDEPTH_DEMO_QUICK=1` runs a reduced scene (3 x 2 rods, a shorter time) for the test suite;
-# `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`).
+# `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`);
+# `MATDEPTH_RODS_MU=0.3` adds Coulomb friction with that coefficient
+# ({py:class}`fenics_matdepth.Coulomb`, {doc}`friction`): the contact fields (pressure,
+# penetration, traction, slip, stick/slip status) then go to the XDMF file with every step,
+# and a last picture shows the status (`MATDEPTH_RODS_T_END` sets the end time).
 
 # +
 from __future__ import annotations
@@ -110,6 +114,8 @@ if quick:
 else:
     geometry = rods.RodsGeometry(layers=6, foundation_size=0.02)
     t_end = 0.3  # s
+t_end = float(os.environ.get("MATDEPTH_RODS_T_END", t_end))
+friction_mu = float(os.environ.get("MATDEPTH_RODS_MU", "0"))
 domain, cell_tags = rods.rods_mesh(comm, geometry)
 V = fem.functionspace(domain, ("Lagrange", 1, (3,)))
 num_tets = domain.topology.index_map(3).size_global
@@ -184,7 +190,8 @@ incremental = integrator.incremental_energy(strain_energy - gravity_work, dampin
 depth = fm.material_depth(domain)
 depth.name = "material_depth"
 penalty = fm.propose_penalty(domain, youngs_modulus, factor=10.0, h=h)
-contact = fm.ContactOperator(u, depth, penalty)
+friction = fm.Coulomb(friction_mu) if friction_mu > 0.0 else None
+contact = fm.ContactOperator(u, depth, penalty, friction=friction)
 use_energy = os.environ.get("MATDEPTH_RODS_ENERGY_LINE_SEARCH", "0") not in ("", "0")
 problem = fm.ContactProblem(
     residual, u, contact, bcs=bcs, energy=incremental if use_energy else None,
@@ -284,6 +291,9 @@ xdmf.write_function(depth)
 def write(t: float) -> None:
     xdmf.write_function(u, t)
     xdmf.write_function(velocity, t)
+    if friction is not None:  # the converged step's contact fields (before advance())
+        for field in contact.fields().values():
+            xdmf.write_function(field, t)
 
 
 frame(None)
@@ -302,6 +312,35 @@ report(
     f"{max_penetration:.3e} m = {max_penetration / h:.3f} h; most active pairs "
     f"{max(r.active_pairs for r in steps)}"
 )
+# -
+
+# With friction, the stick/slip status of the last step on the deformed surfaces: 0 open,
+# 1 stick, 2 slip (the rods at rest stick; the vertices of both surfaces of a contact show it).
+
+# +
+if friction is not None:
+    status = fem.Function(V)
+    status.sub(0).interpolate(contact.fields()["status"])
+    values = status.x.array.reshape(-1, 3)[:n_points, 0]
+    grid = gather_vtk_grid(comm, cells, types, points + u.x.array.reshape(-1, 3)[:n_points], values)
+    if comm.rank == 0 and pyvista is not None:
+        status_mesh = pyvista.UnstructuredGrid(*grid[:3])
+        status_mesh.point_data["status"] = grid[3]
+        plotter = pyvista.Plotter(window_size=(960, 720), off_screen=True)
+        plotter.set_background("white")
+        plotter.add_mesh(
+            status_mesh.extract_surface(), scalars="status", cmap=["#d9d9d9", "#1f77b4", "#d62728"],
+            clim=[0, 2], show_edges=False,
+            scalar_bar_args={"title": "0 open, 1 stick, 2 slip", "color": "black", "n_labels": 3,
+                             "fmt": "%.0f"},
+        )  # fmt: skip
+        plotter.add_text(f"mu = {friction_mu:g}, t = {history[-1].t:.3f} s", color="black")
+        plotter.camera.focal_point = tuple(centre)
+        plotter.camera.position = tuple(camera)
+        plotter.camera.up = (0.0, 0.0, 1.0)
+        plotter.screenshot(str(output / "falling_rods_status.png"))
+        plotter.close()
+        show_image(output / "falling_rods_status.png")
 # -
 
 # ### Energies
@@ -399,6 +438,19 @@ summary = {
         float(np.linalg.norm(u.x.array.reshape(-1, 3), axis=1).max(initial=0.0)), op=MPI.MAX
     ),
     "frames": [Path(f).name for f in frames],
+    "mu": friction_mu,
+    "friction": {
+        k: [r.diagnostics.get(k) for r in steps]
+        for k in ("friction_dissipation", "stick_points", "slip_points")
+    },
+    "rod_speed": comm.allreduce(
+        float(
+            np.linalg.norm(velocity.x.array.reshape(-1, 3)[:n_points][is_rod > 0.5], axis=1).max(
+                initial=0.0
+            )
+        ),
+        op=MPI.MAX,
+    ),
     "seconds": seconds,
 }
 if comm.rank == 0:

@@ -26,6 +26,7 @@ import ufl
 from fenics_matdepth import linear_solver
 from fenics_matdepth._compat import NewtonSolverProblemBase, bc_constrains_space
 from fenics_matdepth.contact.ccd import ENTRY_FRACTION, ContinuousCollision
+from fenics_matdepth.contact.friction import solve_with_updates
 from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.free_bodies import FreeBodyDamping
 from fenics_matdepth.results import SolveResult
@@ -353,7 +354,11 @@ class ContactProblem(SNESCallbacks, _Releasable):
             raise_on_failure: raise ``RuntimeError`` (with the residual history) when SNES does
                 not converge; otherwise return the result with ``converged=False``.
         """
-        return self.free_bodies.solve(self, self._solve_undamped, raise_on_failure)
+        return solve_with_updates(
+            self.contact,
+            lambda fail: self.free_bodies.solve(self, self._solve_undamped, fail),
+            raise_on_failure,
+        )
 
     def _solve_undamped(self, raise_on_failure: bool = True) -> SolveResult:
         """One SNES solve from the current ``u`` (see :meth:`solve`)."""
@@ -633,7 +638,11 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
             raise_on_failure: raise ``RuntimeError`` with the residual history if Newton does
                 not converge.
         """
-        return self.free_bodies.solve(self, self._solve_undamped, raise_on_failure)
+        return solve_with_updates(
+            self.contact,
+            lambda fail: self.free_bodies.solve(self, self._solve_undamped, fail),
+            raise_on_failure,
+        )
 
     def _solve_undamped(self, raise_on_failure: bool = True) -> SolveResult:
         """One Newton solve from the current ``u`` (see :meth:`solve`)."""

@@ -55,7 +55,7 @@ def contact_fields(operator: typing.Any) -> dict[str, dolfinx.fem.Function]:
     around = around[:, 0]
     safe = np.where(around > 0.0, around, 1.0)
     # normal traction at the current state: -p n on the triangle's side
-    pts = op._contact_points()
+    pts = op.contact_points()
     tri_verts = pts["verts"][pts["pair"], :3]
     xi = pts["coef"][:, :3]
     force_n = -pts["weight"][:, None] * pts["normal"]
@@ -64,14 +64,12 @@ def contact_fields(operator: typing.Any) -> dict[str, dolfinx.fem.Function]:
     traction = sums[:, 1:] / safe[:, None]
     status = np.where(pressure > 0.0, SLIP, OPEN)
     slip = np.zeros((n, 3), dtype=FLOAT)
-    if op.friction is not None and op._friction_ref is not None:
-        d = op._friction_held_data()
-        y, _, force_t, vector = op._friction_point_state()
-        ref = op._friction_ref
-        f_verts = ref.verts[d["rows"]][np.repeat(np.arange(d["rows"].size), np.diff(d["qptr"]))]
-        f_verts = f_verts[:, :3]
-        f_xi = d["coef"][:, :3]
-        area = d["area"][:, None]
+    fp = op.friction_points() if op.friction is not None else None
+    if fp is not None:
+        y, force_t, vector = fp["slip_length"], fp["force"], fp["slip"]
+        f_verts = fp["verts"][:, :3]
+        f_xi = fp["coef"][:, :3]
+        area = fp["area"][:, None]
         sliding = (y >= op.slip_tol).astype(FLOAT)[:, None]
         f_sums = _vertex_sums(
             comm, n, f_verts, f_xi, np.hstack((force_t, area * vector, area, area * sliding))

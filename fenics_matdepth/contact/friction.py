@@ -12,6 +12,7 @@ which is the reference still: nothing else is restored.
 
 from __future__ import annotations
 
+import dataclasses
 import typing
 
 from mpi4py import MPI
@@ -29,7 +30,7 @@ from fenics_matdepth.contact.kernels.friction import (
     friction_reference,
 )
 
-__all__ = ["Coulomb", "FrictionMixin"]
+__all__ = ["Coulomb", "FrictionMixin", "body_tags", "solve_with_updates"]
 
 _POINT_KEYS = ("coef", "normal", "weight", "area")
 
@@ -61,6 +62,16 @@ class Coulomb:
             boundary edge length. In dynamics, ``e = eps_v dt`` for a velocity tolerance
             ``eps_v``.
         default: the coefficient of the pairs of bodies a dict ``mu`` does not name.
+        cell_tags: cell MeshTags of ``u``'s mesh: the keys of a dict ``mu`` are then pairs of
+            cell tags instead of body indices, ``{(CARTILAGE, CARTILAGE): 0.01, (SKIN, SKIN):
+            0.5}``. Each body (connected component) must carry one tag on all its cells (a
+            body's tag names it; a body without tags gets ``default``); the operator checks
+            this and says which body breaks it.
+        updates: fixed-point updates of the lagged quantities within a step, as IPC's: after
+            a converged Newton solve the normal pressures, contact normals and quadrature
+            points are taken again at the solution (the slip still measured from the step's
+            start) and the step solved again, ``updates`` times. 0: lagged from the last
+            converged step only.
     """
 
     def __init__(
@@ -68,8 +79,24 @@ class Coulomb:
         mu: float | dict[tuple[int, int], float],
         slip_tol: float | None = None,
         default: float = 0.0,
+        cell_tags: typing.Any = None,
+        updates: int = 0,
     ):
         self.default = _check_mu(default, "default")
+        if cell_tags is not None:
+            if not isinstance(mu, dict):
+                raise ValueError(
+                    "cell_tags name the keys of a dict mu={(tag_a, tag_b): value}; with one "
+                    "coefficient for all pairs leave cell_tags out"
+                )
+            if getattr(cell_tags, "dim", None) != 3:
+                raise ValueError(
+                    f"cell_tags must be the cell MeshTags (dim 3) of the mesh, got {cell_tags!r}"
+                )
+        self.cell_tags = cell_tags
+        if not (isinstance(updates, (int, np.integer)) and updates >= 0):
+            raise ValueError(f"updates must be a whole number >= 0, got {updates!r}")
+        self.updates = int(updates)
         if isinstance(mu, dict):
             table = {}
             for key, value in mu.items():
@@ -78,9 +105,8 @@ class Coulomb:
                     and len(key) == 2
                     and all(isinstance(b, (int, np.integer)) and b >= 0 for b in key)
                 ):
-                    raise ValueError(
-                        f"the keys of mu must be pairs of body indices (a, b), got {key!r}"
-                    )
+                    what = "cell tags" if cell_tags is not None else "body indices"
+                    raise ValueError(f"the keys of mu must be pairs of {what} (a, b), got {key!r}")
                 table[(min(key), max(key))] = _check_mu(value, f"mu[{key!r}]")
             self.mu: float | dict[tuple[int, int], float] = table
         else:
@@ -92,18 +118,73 @@ class Coulomb:
         self.slip_tol = slip_tol
 
     def __repr__(self) -> str:
-        return f"Coulomb(mu={self.mu!r}, slip_tol={self.slip_tol!r}, default={self.default!r})"
+        tags = "" if self.cell_tags is None else ", cell_tags=..."
+        return (
+            f"Coulomb(mu={self.mu!r}, slip_tol={self.slip_tol!r}, default={self.default!r}"
+            f"{tags}, updates={self.updates})"
+        )
 
-    def pair_mu(self, body_a: np.ndarray, body_b: np.ndarray) -> np.ndarray:
-        """The coefficient of each pair of bodies ``(body_a[i], body_b[i])``."""
+    def pair_mu(
+        self, body_a: np.ndarray, body_b: np.ndarray, tag_of_body: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The coefficient of each pair of bodies ``(body_a[i], body_b[i])``.
+
+        Args:
+            body_a, body_b: body indices.
+            tag_of_body: with ``cell_tags``, each body's tag (-1: untagged; see
+                :func:`body_tags`), which the keys of ``mu`` name.
+        """
         body_a, body_b = np.asarray(body_a), np.asarray(body_b)
         if not isinstance(self.mu, dict):
             return np.full(body_a.shape, self.mu, dtype=FLOAT)
+        if self.cell_tags is not None:
+            if tag_of_body is None:
+                raise ValueError("mu by cell tag: pass each body's tag (tag_of_body)")
+            body_a, body_b = tag_of_body[body_a], tag_of_body[body_b]
         out = np.full(body_a.shape, self.default, dtype=FLOAT)
         lo, hi = np.minimum(body_a, body_b), np.maximum(body_a, body_b)
         for (a, b), value in self.mu.items():
             out[(lo == a) & (hi == b)] = value
         return out
+
+
+def body_tags(V: typing.Any, cell_tags: typing.Any, body_of_vertex: np.ndarray) -> np.ndarray:
+    """The cell tag of each body (connected component; -1 where its cells carry none), checking
+    that each body carries one tag on all its cells (collective).
+
+    Args:
+        V: the P1 vector space of ``u``.
+        cell_tags: cell MeshTags of ``V``'s mesh.
+        body_of_vertex: the body of each global vertex (the operator's).
+
+    Raises:
+        ValueError: a body's cells carry two tags, or some of them none.
+    """
+    mesh = V.mesh
+    imap = V.dofmap.index_map
+    n_local = imap.size_local + imap.num_ghosts
+    to_global = imap.local_to_global(np.arange(n_local, dtype=np.int32))
+    cells = np.asarray(V.dofmap.list).reshape(-1, 4)
+    n_cells = mesh.topology.index_map(3).size_local  # owned cells
+    body_of_cell = body_of_vertex[to_global[cells[:n_cells, 0]]]
+    tag = np.full(n_cells, -1, dtype=np.int64)
+    owned = np.asarray(cell_tags.indices) < n_cells
+    tag[np.asarray(cell_tags.indices)[owned]] = np.asarray(cell_tags.values)[owned]
+    seen = np.unique(np.column_stack((body_of_cell, tag)), axis=0)
+    seen = np.unique(np.vstack(mesh.comm.allgather(seen)).reshape(-1, 2), axis=0)
+    num_bodies = int(body_of_vertex.max()) + 1 if body_of_vertex.size else 0
+    out = np.full(num_bodies, -1, dtype=np.int64)
+    for body in range(num_bodies):
+        tags = seen[seen[:, 0] == body, 1]
+        if tags.size > 1:
+            listed = ", ".join("none" if t < 0 else str(t) for t in tags)
+            raise ValueError(
+                f"friction by cell tag: the cells of body {body} carry the tags {listed}; "
+                "each body needs one tag on all its cells (or give mu by body index)"
+            )
+        if tags.size:
+            out[body] = tags[0]
+    return out
 
 
 class _Reference(typing.NamedTuple):
@@ -134,6 +215,11 @@ class FrictionMixin:
         self._friction_ref: _Reference | None = None
         self._friction_held: tuple[int, dict[str, np.ndarray]] | None = None
         self.slip_tol = 0.0
+        self.friction_body_tags: np.ndarray | None = None
+        if friction is not None and friction.cell_tags is not None:
+            self.friction_body_tags = body_tags(
+                self.u.function_space, friction.cell_tags, self.surface.body_of_vertex
+            )
         if friction is not None:
             tol = friction.slip_tol
             self.slip_tol = float(
@@ -141,18 +227,18 @@ class FrictionMixin:
             )
             self.advance()
 
-    def _contact_points(self, friction: bool = False) -> dict[str, np.ndarray]:
+    def contact_points(self, friction: bool = False) -> dict[str, np.ndarray]:
         """The quadrature points of this rank's intersection polygons at the last update where
         the normal traction is positive (see ``kernels.friction``; the points the friction
-        is integrated at).
+        is integrated at, and the contact fields' normal traction; area integration).
 
         Args:
             friction: weigh each point by its pair's friction coefficient (pairs with 0 get no
                 points); else by 1.
 
         Returns:
-            ``verts`` (np, 7) and ``x`` (np, 7, 3): the global vertex numbers and current
-            coordinates of every evaluated pair (triangle then tetrahedron), and per point
+            ``verts`` (np, 7): the global vertex numbers of every evaluated pair (triangle
+            then tetrahedron), and per point
             ``pair`` (its row), ``coef`` (7: the triangle's barycentrics, then minus the
             tetrahedron's), ``normal`` (the unit contact normal, ``grad g`` over its length),
             ``weight`` (``w p`` times the coefficient: force) and ``area`` (``w``, L^2).
@@ -164,7 +250,9 @@ class FrictionMixin:
         scale = np.ones(pa.size, dtype=FLOAT)
         if friction:
             body = s.body_of_vertex
-            scale = self.friction.pair_mu(body[glob[:, 0]], body[glob[:, 3]])
+            scale = self.friction.pair_mu(
+                body[glob[:, 0]], body[glob[:, 3]], self.friction_body_tags
+            )
         stiffness = np.full(pa.size, self.penalty, dtype=FLOAT)
         offset = np.zeros((pa.size, 3), dtype=FLOAT)
         if self._pressure is not None:
@@ -177,7 +265,6 @@ class FrictionMixin:
         nq = friction_reference(*args, False, *empty_reference())
         out = {
             "verts": glob,
-            "x": s.x[verts],
             "pair": np.empty(nq, dtype=INDEX),
             "coef": np.empty((nq, 7), dtype=FLOAT),
             "normal": np.empty((nq, 3), dtype=FLOAT),
@@ -196,12 +283,30 @@ class FrictionMixin:
         if self.friction is None:
             return
         self.update()
-        pts = self._contact_points(friction=True)
+        n_owned = self.surface.owned_dof_count() // 3
+        self._friction_u_ref = self.u.x.array[: 3 * n_owned].reshape(-1, 3).copy()
+        self._lag()
+
+    def update_lagged(self) -> None:
+        """Take the friction's normal pressures, contact normals and quadrature points at the
+        current state of ``u``, the slip still measured from the reference (collective): one
+        fixed-point update within a step (``Coulomb(updates=k)`` has ``ContactProblem.solve``
+        do it ``k`` times after converging, solving again after each)."""
+        if self._friction_ref is None:
+            return
+        self.update()
+        self._lag()
+
+    def _lag(self) -> None:
+        """The lagged data at the current update, the slip's reference from ``advance``."""
+        s = self.surface
+        pts = self.contact_points(friction=True)
         counts = np.bincount(pts["pair"], minlength=pts["verts"].shape[0])
         keep = counts > 0
         qptr = np.concatenate(([0], np.cumsum(counts[keep]))).astype(INDEX)
+        xref = (s.X + s.pull(self._friction_u_ref))[s.held_index(pts["verts"][keep])]
         self._friction_ref = _Reference(
-            pts["verts"][keep], pts["x"][keep], qptr, *(pts[k] for k in _POINT_KEYS)
+            pts["verts"][keep], xref, qptr, *(pts[k] for k in _POINT_KEYS)
         )
         self._friction_held = None
         for key in [k for k in self._cache if k.startswith("friction")]:
@@ -359,3 +464,54 @@ class FrictionMixin:
             self.surface.x, d["verts"], d["xref"], d["qptr"], d["coef"], d["normal"],
             d["weight"], self.slip_tol,
         )  # fmt: skip
+
+    def friction_points(self) -> dict[str, np.ndarray] | None:
+        """The friction's quadrature points on this rank at the last update (the lagged ones,
+        of the reference pairs whose vertices the rank holds; None without friction).
+
+        Returns:
+            Per point: ``verts`` (nq, 7), the global vertex numbers of its pair (triangle then
+            tetrahedron); ``coef`` (nq, 7), the slip's coefficients on them (the triangle's
+            barycentrics, then minus the tetrahedron's); ``area`` (``w``, L^2); ``weight``
+            (``c = w mu p``, F); ``slip_length`` (``y``, L) and ``slip`` (nq, 3; the
+            tangential slip of the triangle's point relative to the tetrahedron's since the
+            reference, L); ``ratio`` (``f1(y) = |t_T| / (mu p)``); ``force`` (nq, 3; the
+            tangential force on the triangle's side, F). A point sticks where ``slip_length``
+            is below ``slip_tol``.
+        """
+        if self._friction_ref is None:
+            return None
+        d = self._friction_held_data()
+        y, ratio, force, vector = self._friction_point_state()
+        rows = np.repeat(d["rows"], np.diff(d["qptr"]))
+        return {
+            "verts": self._friction_ref.verts[rows],
+            "coef": d["coef"],
+            "area": d["area"],
+            "weight": d["weight"],
+            "slip_length": y,
+            "slip": vector,
+            "ratio": ratio,
+            "force": force,
+        }
+
+
+def solve_with_updates(
+    contact: typing.Any, solve: typing.Callable[[bool], typing.Any], raise_on_failure: bool
+) -> typing.Any:
+    """``solve(raise_on_failure)``, then the friction's fixed-point updates of ``contact``'s
+    ``Coulomb(updates=k)``: k times, :meth:`FrictionMixin.update_lagged` and ``solve`` again
+    from the solution (collective). The result's iterations are those of all solves; a solve
+    that fails ends the updates with its result."""
+    result = solve(raise_on_failure)
+    friction = getattr(contact, "friction", None)
+    if friction is None or not friction.updates:
+        return result
+    total = result.iterations
+    for _ in range(friction.updates):
+        if not result.converged:
+            break
+        contact.update_lagged()
+        result = solve(raise_on_failure)
+        total += result.iterations
+    return dataclasses.replace(result, iterations=total)
