@@ -368,15 +368,19 @@ class DiscreteGradientContact(MidpointContact):
             :class:`~fenics_matdepth.BackwardEuler` (``u_prev`` is ``u_n``).
 
     Raises:
-        ValueError: for collocation or an augmented Lagrangian's pressures, or another
+        ValueError: for collocation, an augmented Lagrangian's pressures, friction, or another
             integrator.
     """
 
     def __init__(self, operator: ContactOperator, integrator):
-        if operator.integration != "area" or operator.pressure is not None:
+        if (
+            operator.integration != "area"
+            or operator.pressure is not None
+            or operator.friction is not None
+        ):
             raise ValueError(
                 'contact_force="discrete_gradient" needs area integration with plain penalty '
-                '(no augmented Lagrangian pressures); use contact_force="endpoint"'
+                '(no augmented Lagrangian pressures, no friction); use contact_force="endpoint"'
             )
         self.trapezoidal = _is_trapezoidal(integrator)
         if not (self.trapezoidal or type(integrator).__name__ == "BackwardEuler"):
@@ -427,7 +431,9 @@ class DiscreteGradientContact(MidpointContact):
             operator.penalty_revision,
         )  # fmt: skip
         last = self._state
-        same = last is not None and all(np.array_equal(a, b) for a, b in zip(state, last))
+        same = last is not None and all(
+            np.array_equal(a, b) for a, b in zip(state, last, strict=True)
+        )
         if operator.comm.allreduce(same, op=MPI.LAND):
             return
         x0 = s.X + s.pull(state[1].reshape(-1, 3))
