@@ -23,6 +23,12 @@ search work as before, on that potential), and the force sums to zero over each 
 (translation invariance of ``W``), so linear momentum stays exact. ``f_{n+1}`` alternates in
 sign after the bodies separate; the alternation cancels in ``u`` and ``v`` (the trapezoidal
 rule sees only the averages) and shows only in the integrator's stored acceleration.
+
+The midpoint rule is not exact where ``W`` is not smooth over the step: a contact that starts
+late in a step is missed by the midpoint and then pays its whole energy at the next step's
+midpoint force, a gain. :class:`DiscreteGradientContact` makes the average force the discrete
+gradient of ``W`` (Gonzalez 1996), pair by pair: the midpoint gradient plus the correction
+that makes its work over the step exactly ``W(u_{n+1}) - W(u_n)``.
 """
 
 from __future__ import annotations
@@ -38,10 +44,13 @@ import dolfinx.fem.petsc
 import numpy as np
 import ufl
 
+from fenics_matdepth.contact import assembly
+from fenics_matdepth.contact.discrete_gradient import StepPairs
 from fenics_matdepth.contact.operator import ContactOperator
 
 __all__ = [
     "CONTACT_FORCES",
+    "DiscreteGradientContact",
     "MidpointContact",
     "contact_force_of_steps",
     "default_contact_force",
@@ -50,7 +59,7 @@ __all__ = [
 ]
 
 #: The contact forces of a time step ``solve_time_steps(contact_force=...)`` offers.
-CONTACT_FORCES = ("endpoint", "midpoint")
+CONTACT_FORCES = ("endpoint", "midpoint", "discrete_gradient")
 
 
 def _is_trapezoidal(integrator) -> bool:
@@ -79,13 +88,13 @@ def default_contact_force(integrator, contact_force: str | None, problem=None) -
     """
     if contact_force is None:
         return "endpoint"
-    if contact_force == "midpoint" and problem is not None and not _takes_midpoint(problem):
-        raise ValueError(
-            'contact_force="midpoint" needs a ContactProblem or NonlinearContactProblem (a '
-            'problem with an assembler and a contact operator); use contact_force="endpoint"'
-        )
     if contact_force not in CONTACT_FORCES:
         raise ValueError(f"contact_force must be one of {CONTACT_FORCES}, got {contact_force!r}")
+    if contact_force != "endpoint" and problem is not None and not _takes_midpoint(problem):
+        raise ValueError(
+            f'contact_force="{contact_force}" needs a ContactProblem or NonlinearContactProblem '
+            '(a problem with an assembler and a contact operator); use contact_force="endpoint"'
+        )
     if contact_force == "midpoint" and not _is_trapezoidal(integrator):
         raise ValueError(
             'contact_force="midpoint" needs average-acceleration Newmark (beta = 1/4, '
@@ -99,13 +108,15 @@ def contact_force_of_steps(
     problem, integrator, contact_force: str
 ) -> typing.Iterator[MidpointContact | None]:
     """Within the block, the problem's assembler takes the contact term of
-    :class:`MidpointContact` (yielded; None and nothing changed for ``"endpoint"``); afterwards
-    the operator again, updated at ``u`` (collective)."""
+    :class:`MidpointContact` or :class:`DiscreteGradientContact` (yielded; None and nothing
+    changed for ``"endpoint"``); afterwards the operator again, updated at ``u``
+    (collective)."""
     if contact_force == "endpoint":
         yield None
         return
     operator = problem.contact
-    midpoint = MidpointContact(operator, integrator)
+    kind = DiscreteGradientContact if contact_force == "discrete_gradient" else MidpointContact
+    midpoint = kind(operator, integrator)
     problem.assembler.contact = midpoint
     try:
         yield midpoint
@@ -320,3 +331,166 @@ class MidpointContact:
         """Release the PETSc vectors."""
         self.force.destroy()
         self._gradient.destroy()
+
+
+class DiscreteGradientContact(MidpointContact):
+    """The contact term of a time step whose work over the step is the change of the contact
+    energy, exactly: the discrete gradient of Gonzalez (1996), pair by pair.
+
+    For each (triangle, tetrahedron) pair that intersects at the step's start ``u_n``, its
+    midpoint or its end ``u`` (:class:`~fenics_matdepth.contact.discrete_gradient.StepPairs`),
+    ``DG_p = dW_p/du (m) + c_p M dU_p`` with ``c_p`` such that ``DG_p . dU_p = W_p(u) -
+    W_p(u_n)`` (`fenics_matdepth.contact.kernels.discrete_gradient`; ``M`` removes the pair's
+    mean translation, so ``DG`` sums to zero over each pair and moves no momentum). Summed,
+    ``DG . (u - u_n) = W(u) - W(u_n)``.
+
+    With average-acceleration Newmark ``DG`` is the step's average contact force
+    ``(f_n + f_{n+1}) / 2``: the residual gets ``2 DG - f_n`` (``f_{n+1} = 2 DG - f_n`` is
+    carried to the next step, as :class:`MidpointContact` does), and the kinetic, strain and
+    contact energies change by exactly the work of the other forces, up to the trapezoidal
+    rule's error on the bulk's own nonlinearity. With backward Euler ``DG`` is the step's
+    contact force itself: the residual gets ``DG``, and the contact gains no energy (the
+    kinetic energy loses ``|v_{n+1} - v_n|^2_M / 2`` per step as before).
+
+    The Jacobian is the exact derivative (non-symmetric: the rank-one parts of ``c_p``; the
+    problem's factorisation becomes LU). The line search's merit is the potential of
+    :class:`MidpointContact`, ``4 W(m) - f_n . u`` (backward Euler: ``2 W(m)``), whose gradient
+    ``2 dW/du (m) - f_n`` is the residual's contact term but for the ``c_p`` corrections:
+    where the step goes uphill on it, the problem's line search judges by the residual norm.
+
+    Couplings of a pair that intersects only at the step's start or midpoint and that lie
+    outside the matrix pattern (built around the end state) are left out of the Jacobian
+    (:attr:`left_out` counts them); the residual is exact.
+
+    Args:
+        operator: the contact operator of ``integrator.u`` (area integration, plain penalty).
+        integrator: :class:`~fenics_matdepth.Newmark` with ``beta = 1/4``, ``gamma = 1/2``, or
+            :class:`~fenics_matdepth.BackwardEuler` (``u_prev`` is ``u_n``).
+
+    Raises:
+        ValueError: for collocation, an augmented Lagrangian's pressures, friction, or another
+            integrator.
+    """
+
+    def __init__(self, operator: ContactOperator, integrator):
+        if (
+            operator.integration != "area"
+            or operator.pressure is not None
+            or operator.friction is not None
+        ):
+            raise ValueError(
+                'contact_force="discrete_gradient" needs area integration with plain penalty '
+                '(no augmented Lagrangian pressures, no friction); use contact_force="endpoint"'
+            )
+        self.trapezoidal = _is_trapezoidal(integrator)
+        if not (self.trapezoidal or type(integrator).__name__ == "BackwardEuler"):
+            raise ValueError(
+                'contact_force="discrete_gradient" needs average-acceleration Newmark (beta = '
+                "1/4, gamma = 1/2) or BackwardEuler, got "
+                f'{type(integrator).__name__}; use contact_force="endpoint"'
+            )
+        self.pairs: StepPairs | None = None
+        self._state: tuple | None = None
+        #: Jacobian couplings left out at the last assembly (outside the pattern)
+        self.left_out = 0
+        super().__init__(operator, integrator)
+
+    # -- the step's bookkeeping ---------------------------------------------------------------
+
+    def accept(self) -> None:
+        """Before the integrator advances to the converged ``u``: with Newmark, make this
+        step's contact force ``2 DG - f_n`` the previous one (collective)."""
+        self.update()
+        if self.trapezoidal:
+            gradient = self._gradient
+            with gradient.localForm() as local:
+                local.set(0.0)
+            self._add_pairs(gradient, 1.0)
+            self.force.aypx(-1.0, gradient)  # DG - f_n
+            self.force.axpy(1.0, gradient)  # 2 DG - f_n
+
+    def _add_pairs(self, b: PETSc.Vec, scale: float) -> None:
+        """``b += scale DG`` (owned entries; collective)."""
+        p = self.pairs
+        dofs, vals = assembly.gradient_array(self.operator.surface, p.verts, scale * p.gradient)
+        b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
+        b.assemblyBegin()
+        b.assemblyEnd()
+
+    # -- what the assembler calls -------------------------------------------------------------
+
+    def update(self) -> None:
+        """Update the operator at ``u`` and the step's pairs between ``u_n`` and ``u``
+        (collective; nothing is recomputed at the same state)."""
+        operator = self.operator
+        operator.update()
+        s = operator.surface
+        n = s.owned_dof_count()
+        state = (
+            self.u.x.array[:n].copy(), self.integrator.u_prev.x.array[:n].copy(), s.refreshes,
+            operator.penalty_revision,
+        )  # fmt: skip
+        last = self._state
+        same = last is not None and all(
+            np.array_equal(a, b) for a, b in zip(state, last, strict=True)
+        )
+        if operator.comm.allreduce(same, op=MPI.LAND):
+            return
+        x0 = s.X + s.pull(state[1].reshape(-1, 3))
+        self.pairs = StepPairs(s, x0, operator.penalty)
+        self._state = state
+
+    def add_residual(self, b: PETSc.Vec) -> None:
+        """``b += 2 DG - f_n`` (Newmark) or ``DG`` (backward Euler) (collective)."""
+        self._add_pairs(b, 2.0 if self.trapezoidal else 1.0)
+        if self.trapezoidal:
+            b.axpy(-1.0, self.force)
+
+    def _scaled_jacobian(self) -> np.ndarray:
+        return (2.0 if self.trapezoidal else 1.0) * self.pairs.jacobian()
+
+    def add_lifting(self, b: PETSc.Vec, offset: np.ndarray) -> None:
+        """``b += J[:, D] offset[D]`` with the discrete gradient's Jacobian, from the pairs
+        with a Dirichlet dof not yet on its value (collective)."""
+        s = self.operator.surface
+        held = s.pull(np.asarray(offset, dtype=float).reshape(-1, 3)).reshape(-1)
+        dofs = vals = np.empty(0)
+        if held.any():
+            pair_dofs = assembly.pair_dofs(self.pairs.verts)
+            moved = held[pair_dofs]
+            sel = np.flatnonzero(moved.any(axis=1))
+            if sel.size:
+                contrib = np.einsum("pij,pj->pi", self._scaled_jacobian()[sel], moved[sel])
+                keep = ~s.bc[pair_dofs[sel]]
+                dofs = assembly.global_dofs(s, pair_dofs[sel][keep])
+                vals = contrib[keep]
+        b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
+        b.assemblyBegin()
+        b.assemblyEnd()
+
+    def add_jacobian(
+        self, A: PETSc.Mat, bcs: typing.Sequence[dolfinx.fem.DirichletBC] | None = None
+    ) -> None:
+        """``A +=`` the derivative of the residual's contact term (collective)."""
+        operator = self.operator
+        if bcs is not None:
+            operator.set_bcs(bcs)
+        s = operator.surface
+        keys, transposed = operator.held_pattern()
+        pos, missing = assembly.coupling_positions(s, keys, self.pairs.verts, transposed)
+        self.left_out = operator.comm.allreduce(missing)
+        assembly.add_jacobian_blocks(A, s, keys, pos, self.pairs.verts, self._scaled_jacobian())
+        A.assemble()
+
+    def energy(self) -> float:
+        """The line search's merit: ``4 W(m) - f_n . u`` (Newmark) or ``2 W(m)`` (backward
+        Euler) (collective)."""
+        midpoint = self.operator.comm.allreduce(float(np.sum(self.pairs.energy_mid)))
+        if not self.trapezoidal:
+            return 2.0 * midpoint
+        return 4.0 * midpoint - self.force.dot(self.u.x.petsc_vec)
+
+    def pattern_needs_rebuild(self) -> bool:
+        """Whether a coupling at ``u`` lies outside the pattern (collective)."""
+        self.update()
+        return self.operator.pattern_needs_rebuild()

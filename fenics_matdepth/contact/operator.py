@@ -191,8 +191,7 @@ class ContactOperator(FrictionMixin):
 
     @property
     def pair_searches(self) -> int:
-        """The number of pair searches so far (the other updates reused the candidate
-        pairs)."""
+        """The number of pair searches so far (the other updates reused the candidate pairs)."""
         return self.pair_search.searches
 
     # -- geometry -------------------------------------------------------------------------
@@ -241,9 +240,8 @@ class ContactOperator(FrictionMixin):
     def _kernel_pass(
         self, select: np.ndarray | None, want_grad: bool, want_hess: bool
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The pair kernel's (energy, gradient, Hessian) arrays of the pairs `_pair_verts`
-        lists (the intersecting area pairs, every collocation pair), or of its rows
-        ``select``; not kept."""
+        """The pair kernel's (energy, gradient, Hessian) arrays of the pairs `_pair_verts` lists
+        (the intersecting area pairs, every collocation pair), or of its rows ``select``."""
         pa, pk = self._evaluated_pairs()
         if select is not None:
             pa, pk = pa[select], pk[select]
@@ -270,9 +268,8 @@ class ContactOperator(FrictionMixin):
         return search.pair_a, search.pair_k
 
     def _sums_fused(self) -> bool:
-        """Whether the residual and Jacobian are summed as the pair kernel makes them
-        (`_summed`; plain penalty with area integration) rather than from the materialised
-        per-pair arrays of `_evaluate`."""
+        """Whether residual and Jacobian are summed as the pair kernel makes them (`_summed`;
+        plain penalty, area integration), not from the per-pair arrays of `_evaluate`."""
         return self.integration == "area" and self._pressure is None
 
     @announces_compilation("the contact pair integrals")
@@ -368,8 +365,7 @@ class ContactOperator(FrictionMixin):
         b.assemblyEnd()
 
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
-        """Remember the Dirichlet dofs, whose rows and columns :meth:`add_jacobian` skips
-        (collective)."""
+        """Remember the Dirichlet dofs, whose Jacobian rows and columns stay out (collective)."""
         mask_local = np.zeros(self.surface.owned_dof_count(), dtype=bool)
         mask_local[assembly.owned_dirichlet_dofs(bcs)] = True
         self.surface.set_bcs(mask_local)
@@ -397,6 +393,10 @@ class ContactOperator(FrictionMixin):
         """Where each key of :meth:`_pattern_in_held_numbering` has its transpose."""
         self._pattern_in_held_numbering()
         return self._held_transposed
+
+    def held_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """The pattern's sorted held-numbered couplings, and where each has its transpose."""
+        return self._pattern_in_held_numbering(), self._pattern_transposed()
 
     @announces_compilation("the contact Jacobian assembly")
     def add_jacobian(

@@ -1,0 +1,119 @@
+"""Energy in a step the continuous collision detection ends at an impact, per contact force.
+
+A stiff cube (0.2 wide, 2^3 cuboids, neo-Hookean E = 1000, nu = 0.3, rho = 1) 0.05 above a
+0.3 x 0.3 x 0.05 plate (6 x 6 x 1 cuboids) clamped on its sides flies at it at ``speed``;
+average-acceleration Newmark, dt = 0.01, ``propose_penalty(mesh, E, factor=10)``, collision
+detection on (the default): the step that would carry the cube through the plate is truncated
+at the impact, so the contact starts late in that step. Printed per contact force and speed:
+the total energy (kinetic + strain + contact) after the first step and its largest value over
+``--steps`` steps, relative to the initial kinetic energy, Newton iterations and cuts.
+
+Run: ``scripts/fenicsx python3 benchmarks/bench_truncated_impact.py [--speeds 30 50]
+[--schemes endpoint midpoint discrete_gradient] [--steps 5]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from mpi4py import MPI
+
+import dolfinx
+import numpy as np
+import ufl
+
+import fenics_matdepth as fm
+
+E, NU, RHO, DT, GAP = 1000.0, 0.3, 1.0, 0.01, 0.05
+
+
+def cube_over_plate(comm: MPI.Comm) -> dolfinx.mesh.Mesh:
+    xp, cp = fm.meshing.box_tetrahedra(
+        (6, 6, 1), origin=(-0.15, -0.15, -0.05), size=(0.3, 0.3, 0.05)
+    )
+    xc, cc = fm.meshing.box_tetrahedra(2, origin=(-0.1, -0.1, GAP), size=(0.2, 0.2, 0.2))
+    return fm.meshing.create_tetrahedral_mesh(
+        comm, np.vstack([cp, cc + xp.shape[0]]), np.vstack([xp, xc])
+    )
+
+
+def run(mesh, speed: float, scheme: str, steps: int) -> dict:
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    v = ufl.TestFunction(V)
+    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E, NU)
+    F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    psi = fm.materials.neo_hookean(F_def, mu, kappa)
+    elastic = ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
+    facets = dolfinx.mesh.locate_entities_boundary(
+        mesh, 2, lambda x: np.isclose(np.abs(x[0]), 0.15) | np.isclose(np.abs(x[1]), 0.15)
+    )
+    bcs = [
+        dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, facets), V)
+    ]
+    contact = fm.ContactOperator(
+        u, fm.material_depth(mesh), penalty=fm.propose_penalty(mesh, E, factor=10.0)
+    )
+    integrator = fm.Newmark(u, DT, rho=RHO)
+    residual = integrator.inertia(v) + elastic
+    v0 = dolfinx.fem.Function(V)
+    v0.interpolate(lambda x: np.vstack((0 * x[0], 0 * x[0], np.where(x[2] > 0.01, -speed, 0.0))))
+    integrator.initial(None, v0, residual=residual, contact=contact, bcs=bcs)
+    problem = fm.ContactProblem(
+        residual, u, contact, bcs=bcs, energy=integrator.incremental_energy(psi * ufl.dx),
+        petsc_options_prefix="truncated_",
+    )  # fmt: skip
+    kinetic = 0.5 * RHO * 0.2**3 * speed**2
+    try:
+        history = fm.solve_time_steps(
+            problem, integrator, steps * DT, DT, strain_energy=psi * ufl.dx, progress=False,
+            contact_force=scheme,
+        )  # fmt: skip
+        failure = ""
+    except RuntimeError as err:
+        history, failure = [], str(err)[:200]
+    problem.destroy()
+    if not history:
+        return {"failure": failure}
+    energy = np.array([r.total_energy for r in history]) / kinetic
+    return {
+        "failure": "",
+        "first": energy[1],
+        "max": energy.max(),
+        "first_dt": history[1].dt,
+        "its": np.mean([r.iterations for r in history[1:]]),
+        "max_its": max(r.iterations for r in history[1:]),
+        "cuts": sum(r.cuts for r in history),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--speeds", nargs="*", type=float, default=[30.0, 50.0])
+    parser.add_argument(
+        "--schemes", nargs="*", default=["endpoint", "midpoint", "discrete_gradient"]
+    )
+    parser.add_argument("--steps", type=int, default=5)
+    args = parser.parse_args()
+    comm = MPI.COMM_WORLD
+    mesh = cube_over_plate(comm)
+    if comm.rank == 0:
+        print(f"{comm.size} rank(s), dt {DT}, {args.steps} steps; energy / initial kinetic")
+    for speed in args.speeds:
+        for scheme in args.schemes:
+            r = run(mesh, speed, scheme, args.steps)
+            if comm.rank != 0:
+                continue
+            if r["failure"]:
+                print(f"speed {speed:5.1f} {scheme:17s} failed: {r['failure']}", flush=True)
+                continue
+            print(
+                f"speed {speed:5.1f} {scheme:17s} first step (dt {r['first_dt']:.3g}) "
+                f"{r['first']:.4f}, max {r['max']:.4f}; Newton its {r['its']:.2f} mean, "
+                f"{r['max_its']} max; cuts {r['cuts']}",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
