@@ -386,6 +386,10 @@ class RigidModeDamping:
         inner_rtol: the solves after the first stop at this fraction of the first solve's
             initial residual at the latest (see :class:`AugmentedLagrangian`).
         undamped_first: after a converged call, try the undamped solve first (see above).
+        may_decrease: called after each damped solve that made progress with the ``k`` it
+            used; ``k`` falls only where it returns True (default: always). A solver without
+            a line search uses it to keep ``k`` until contact holds the body
+            (:class:`~fenics_matdepth.free_bodies.FreeBodyDamping`).
     """
 
     def __init__(
@@ -398,6 +402,7 @@ class RigidModeDamping:
         decrease: float = 0.1,
         inner_rtol: float = 1e-6,
         undamped_first: bool = True,
+        may_decrease: typing.Callable[[float], bool] | None = None,
     ):
         self.problem = problem
         self.u = problem.u
@@ -410,6 +415,7 @@ class RigidModeDamping:
         self.decrease = float(decrease)
         self.inner_rtol = float(inner_rtol)
         self.undamped_first = bool(undamped_first)
+        self.may_decrease = may_decrease
         #: damped solves in the last :meth:`solve`
         self.damped_solves = 0
         #: whether the last :meth:`solve` converged (contact held the body at its end)
@@ -478,7 +484,8 @@ class RigidModeDamping:
                 total = comm.allreduce(float(np.max(np.abs(local - start))), op=MPI.MAX)
                 if step <= self.rtol * total or k * decrease < 1e-6 * self.stiffness:
                     break
-                k *= decrease
+                if self.may_decrease is None or self.may_decrease(k):
+                    k *= decrease
             if self.damped_solves and result.converged:
                 self._k.value = 0.0
                 result = solve_once()

@@ -26,9 +26,20 @@ forms:
 * **Off at the end**: the last solve of :class:`~fenics_matdepth.RigidModeDamping` runs with
   ``k = 0``, from the nearly balanced damped state, and only its convergence counts: a
   converged result solves the undamped problem (the damping force is zero there, not small).
+* **Without a line search** (:class:`~fenics_matdepth.NonlinearContactProblem`), ``k`` falls
+  only while the next damped solve would move a body not yet held by at most
+  ``MAX_FREE_MOTION`` times ``h``, or once contact holds it (its undamped stiffness along its
+  load at least the next ``k`` times its volume): a full Newton step computed before contact
+  engages would otherwise carry the body from a gap deep into the other one.
 * **Named on failure**: where even that fails, the result's message names the free bodies
-  (number, vertices, centre, size, free rigid motions) and the fix, instead of the advice to
-  reduce the load step or the penalty.
+  (number, vertices, centre, size, free rigid motions), the rigid motions contact does not
+  hold at the last damped state (:meth:`FreeBodyDamping.unheld_motions`: frictionless contact
+  holds a body pressed onto a face against the normal translation and the tilts, never against
+  sliding along the face and turning about its normal) and the fixes, instead of the advice
+  to reduce the load step or the penalty. The library does not regularise those motions
+  itself: a term that held them would bias the answer wherever the discrete contact forces
+  have a tangential resultant (measured: a cube free in all six motions on a block slid
+  0.59 along the mesh's diagonal while the damping fell), so the fix is the user's choice.
 
 ``ContactProblem(..., damp_free_bodies=False)`` switches all of it off.
 """
@@ -56,6 +67,9 @@ if typing.TYPE_CHECKING:
 __all__ = [
     "FIRST_MOTION",
     "FREE_MOTION_RTOL",
+    "MAX_FREE_MOTION",
+    "RIGID_MOTIONS",
+    "UNHELD_RTOL",
     "FreeBody",
     "FreeBodyDamping",
     "ProximalTerm",
@@ -71,6 +85,24 @@ FIRST_MOTION = 0.01
 FREE_MOTION_RTOL = 1e-10
 #: The size of the trial translation that measures a body's stiffness, relative to ``h``.
 TRIAL_MOTION = 1e-4
+#: Without a line search, a damped solve moves a body that contact does not hold yet by at most
+#: this fraction of ``h`` (from a gap of h / 9, the test's, a damped solve whose free motion was
+#: h diverged at every k tried; with h / 10 per solve it converges).
+MAX_FREE_MOTION = 0.1
+#: A rigid motion is not held where its stiffness (the generalised eigenvalue of the body's
+#: rigid-mode stiffness over the modes' Gram matrix) is below this fraction of the largest
+#: one's, or of ``eps h^2``, whichever is larger.
+UNHELD_RTOL = 1e-3
+#: The names of the rigid motions, in the order of the rigid modes (translations; rotations
+#: about z, x, y).
+RIGID_MOTIONS = (
+    "translation along x",
+    "translation along y",
+    "translation along z",
+    "rotation about z",
+    "rotation about x",
+    "rotation about y",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -269,6 +301,8 @@ class FreeBodyDamping:
         enabled: False: find nothing, damp nothing.
         decrease: the factor on k from one damped solve to the next
             (:class:`~fenics_matdepth.RigidModeDamping`'s).
+        line_search: whether the problem's Newton solver has a line search; without one, ``k``
+            falls only as far as ``MAX_FREE_MOTION`` allows until contact holds the body.
 
     Attributes:
         bodies: the free bodies found (empty when disabled).
@@ -276,6 +310,8 @@ class FreeBodyDamping:
         damped_solves: how many (the last solve).
         motions: each free body's motion under its load at the last solve's start, ``|F| / q``
             relative to ``h`` (inf without stiffness; 0 without load).
+        unheld: after a failed solve, the rigid motions contact did not hold at the last
+            damped state, per free body (names from ``RIGID_MOTIONS``; empty otherwise).
     """
 
     def __init__(
@@ -285,15 +321,18 @@ class FreeBodyDamping:
         assembler: SystemAssembler,
         enabled: bool = True,
         decrease: float = 0.1,
+        line_search: bool = True,
     ):
         self.enabled = bool(enabled)
         self.decrease = float(decrease)
+        self.line_search = bool(line_search)
         self.contact = contact
         self.assembler = assembler
         self.bodies = find_free_bodies(contact, bcs) if self.enabled else []
         self.damped = False
         self.damped_solves = 0
         self.motions = np.zeros(len(self.bodies))
+        self.unheld: list[list[str]] = [[] for _ in self.bodies]
         if not self.bodies:
             return
         V = contact.u.function_space
@@ -304,6 +343,8 @@ class FreeBodyDamping:
         # the free body of each owned vertex and dof (unrolled), -1 elsewhere and on the
         # Dirichlet dofs
         vertex_body = self._body_index[body]
+        self._vertex_body = vertex_body
+        self._X = p1_dof_coordinates(V)[: body.size]
         self._dof_body = np.repeat(vertex_body, 3)
         self._dof_body[owned_dirichlet_dofs(assembler.bcs)] = -1
         share = _lumped_volume(V)
@@ -326,11 +367,13 @@ class FreeBodyDamping:
         np.add.at(out, (self._dof_body[on], comp), b.getArray(readonly=True)[on])
         return self.contact.comm.allreduce(out, op=MPI.SUM)
 
-    def _loads(self, u: dolfinx.fem.Function) -> tuple[np.ndarray, np.ndarray]:
+    def _loads(
+        self, u: dolfinx.fem.Function, along: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Each free body's load ``F`` (bodies, 3) and stiffness ``q`` against a translation
         along it (bodies,), from the residual at ``u`` and at ``u`` with each body translated
-        by ``TRIAL_MOTION h`` along its load (collective; ``u`` and the contact state are left
-        as they were)."""
+        by ``TRIAL_MOTION h`` along its load, or along ``along`` (bodies, 3) where given
+        (collective; ``u`` and the contact state are left as they were)."""
         assembler = self.assembler
         x = u.x.petsc_vec
         b, trial, moved = x.duplicate(), x.duplicate(), x.duplicate()
@@ -339,9 +382,10 @@ class FreeBodyDamping:
             if not assembler.residual(x, b):
                 return np.zeros((len(self.bodies), 3)), np.zeros(len(self.bodies))
             load = -self._resultants(b)
-            norm = np.linalg.norm(load, axis=1)
-            direction = np.zeros_like(load)
-            np.divide(load, norm[:, None], out=direction, where=norm[:, None] > 0)
+            toward = load if along is None else along
+            norm = np.linalg.norm(toward, axis=1)
+            direction = np.zeros_like(toward)
+            np.divide(toward, norm[:, None], out=direction, where=norm[:, None] > 0)
             s = TRIAL_MOTION * self.h
             on = self._dof_body >= 0
             x.copy(trial)
@@ -377,9 +421,24 @@ class FreeBodyDamping:
             # no load on the free bodies: the first proximal motion from the penalty's scale
             k = float(self.contact.penalty) / self.h
         term = self.assembler.proximal
+        may_decrease = None
+        if not self.line_search:
+
+            def may_decrease(used: float) -> bool:
+                # the next k moves a body only a little, or contact holds each body already
+                following = used * self.decrease * self._volume
+                term.stiffness.value = 0.0
+                try:
+                    _, held = self._loads(problem.u, along=load)
+                finally:
+                    term.stiffness.value = used
+                small = force <= MAX_FREE_MOTION * self.h * following * (1.0 + 1e-9)
+                return bool(np.all(small | (held >= following)))
+
         damping = RigidModeDamping(
-            _PlainSolves(problem, plain), term.stiffness, term.anchor, decrease=self.decrease
-        )
+            _PlainSolves(problem, plain), term.stiffness, term.anchor, decrease=self.decrease,
+            may_decrease=may_decrease,
+        )  # fmt: skip
         damping.stiffness = k
         # damped from the start where the load would move a body by more than h; else the
         # plain solve first (RigidModeDamping's undamped_first after a converged call)
@@ -387,18 +446,140 @@ class FreeBodyDamping:
         result = damping.solve(raise_on_failure=False)
         self.damped_solves = damping.damped_solves
         self.damped = self.damped_solves > 0
+        self.unheld = [[] for _ in self.bodies]
         if not result.converged:
+            if self.damped:
+                # at the last damped solve's start (its anchor)
+                reached = problem.u.x.array.copy()
+                problem.u.x.array[:] = term.anchor.x.array
+                try:
+                    self.unheld = self.unheld_motions(problem.u)
+                finally:
+                    problem.u.x.array[:] = reached
+                    self.assembler.set_state(problem.u.x.petsc_vec)
             result = dataclasses.replace(result, advice=self.advice())
             if raise_on_failure:
                 raise RuntimeError(result.failure_message())
         return result
 
+    def rigid_stiffness(self, u: dolfinx.fem.Function) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each free body's stiffness against its six rigid motions at ``u``, without the
+        damping term (collective; ``u`` and the contact state are left as they were).
+
+        The modes are those of :func:`find_free_bodies` at the current positions ``X + u``,
+        about the body's current centre, rotations scaled by the body's size, on its free dofs
+        only (a mode its Dirichlet conditions hold deforms the body there, and is stiff).
+        One residual per mode, moved by ``TRIAL_MOTION h``.
+
+        Returns:
+            ``(K, G)``, each (bodies, 6, 6): the stiffness (force / length, the generalised
+            force of mode n per unit motion of mode m) and the modes' Gram matrix; None where
+            a residual could not be evaluated (an inverted element).
+        """
+        comm, assembler = self.contact.comm, self.assembler
+        n_bodies, n = len(self.bodies), self._dof_body.size
+        x = u.x.petsc_vec
+        P = self._X + x.getArray(readonly=True)[:n].reshape(-1, 3)
+        on = self._vertex_body >= 0
+        total = np.zeros((n_bodies, 3))
+        np.add.at(total, self._vertex_body[on], P[on])
+        count = np.bincount(self._vertex_body[on], minlength=n_bodies)
+        centre = (
+            comm.allreduce(total, op=MPI.SUM)
+            / np.maximum(comm.allreduce(count, op=MPI.SUM), 1)[:, None]
+        )
+        scale = np.array([max(max(b.size), np.finfo(float).tiny) for b in self.bodies])
+        dofs = np.flatnonzero(self._dof_body >= 0)
+        body = self._dof_body[dofs]
+        rows = _rigid_rows((P[dofs // 3] - centre[body]) / scale[body, None], dofs % 3)
+        gram = np.zeros((n_bodies, 6, 6))
+        np.add.at(gram, body, rows[:, :, None] * rows[:, None, :])
+        s = TRIAL_MOTION * self.h
+        k, stiffness = self.assembler.proximal.k, np.zeros((n_bodies, 6, 6))
+        base, trial, moved = x.duplicate(), x.duplicate(), x.duplicate()
+        admissible = True
+        try:
+            self.assembler.proximal.stiffness.value = 0.0
+            assembler.set_state(x)
+            admissible = assembler.residual(x, base)
+            start = base.getArray(readonly=True)[dofs].copy()
+            for m in range(6):
+                x.copy(trial)
+                trial.array[dofs] += s * rows[:, m]
+                assembler.set_state(trial)
+                admissible = assembler.residual(trial, moved) and admissible
+                change = (moved.getArray(readonly=True)[dofs] - start) / s
+                np.add.at(stiffness[:, :, m], body, rows * change[:, None])
+        finally:
+            self.assembler.proximal.stiffness.value = k
+            u.x.scatter_forward()
+            assembler.set_state(x)
+            for vec in (base, trial, moved):
+                vec.destroy()
+        if not comm.allreduce(bool(admissible), op=MPI.LAND):
+            return None
+        return comm.allreduce(stiffness, op=MPI.SUM), comm.allreduce(gram, op=MPI.SUM)
+
+    def unheld_motions(self, u: dolfinx.fem.Function) -> list[list[str]]:
+        """The rigid motions of each free body that nothing holds at ``u`` (collective).
+
+        From :meth:`rigid_stiffness`: the generalised eigenvalues of the symmetric part of K
+        over G at or below ``UNHELD_RTOL`` of the largest (or of ``eps h^2``) span the motions
+        not held; a rigid motion is named where more than half of it (in G's norm) lies in
+        that span, or where its own stiffness (``K_ii / G_ii``) is below that bound (a motion
+        without stiffness coupled to a stiff one: seen, the turning of a cube on a block,
+        coupled to its tilts at a state contact had not settled).
+
+        Returns:
+            Per free body, the names (``RIGID_MOTIONS``) of its motions not held; empty lists
+            where the stiffness could not be evaluated.
+        """
+        measured = self.rigid_stiffness(u)
+        if measured is None:
+            return [[] for _ in self.bodies]
+        stiffness, gram = measured
+        out = []
+        reference = float(self.contact.penalty) * self.h**2
+        for K, G in zip(stiffness, gram, strict=True):
+            # G^(-1/2) through its eigenvectors (G is positive definite on a body's free dofs,
+            # semi-definite only on a degenerate body: those directions are dropped)
+            g, V = np.linalg.eigh(G)
+            keep = g > 1e-12 * g[-1]
+            W = V[:, keep] / np.sqrt(g[keep])
+            lam, Y = np.linalg.eigh(W.T @ (0.5 * (K + K.T)) @ W)
+            bound = UNHELD_RTOL * max(float(np.max(np.abs(lam))), reference)
+            X = W @ Y[:, lam <= bound]  # G-orthonormal basis of the motions not held
+            diagonal = np.maximum(np.diag(G), 1e-300)
+            share = np.einsum("ij,ij->i", G @ X, G @ X) / diagonal
+            own = np.diag(K) / diagonal
+            free = (share > 0.5) | (own <= bound)
+            out.append([name for name, f in zip(RIGID_MOTIONS, free, strict=True) if f])
+        return out
+
     def advice(self) -> str:
         """What the failure message says about the free bodies."""
         names = "; ".join(b.describe() for b in self.bodies)
+        unheld = "; ".join(
+            f"body {b.index}: {', '.join(m)}"
+            for b, m in zip(self.bodies, self.unheld, strict=True)
+            if m
+        )
+        if not unheld:
+            return (
+                f"The mesh has bodies held only by contact: {names}. Contact did not hold "
+                "them, even with the automatic proximal damping of their rigid motions: make "
+                "sure the load presses each onto a body it touches or nearly touches (start it "
+                "touching), or hold it with Dirichlet conditions."
+            )
         return (
             f"The mesh has bodies held only by contact: {names}. Contact did not hold them, "
-            "even with the automatic proximal damping of their rigid motions: make sure the "
-            "load presses each onto a body it touches or nearly touches (start it touching), "
-            "or hold it with Dirichlet conditions."
+            "even with the automatic proximal damping of their rigid motions; at the last "
+            f"damped state it did not hold these rigid motions ({unheld}). Frictionless "
+            "contact does not hold a body against sliding along the faces it touches or "
+            "turning about their normal. Fixes: hold those motions with Dirichlet conditions "
+            "(a roller on a symmetry plane, a pinned vertex or edge), give the contact "
+            "friction (fm.Coulomb), or add a weak spring to the body's energy ((k / 2) int "
+            "|u|^2 dx over it, small k: it biases the answer by its force); where the "
+            "translation towards the other body is among them, make sure the load presses the "
+            "body onto one it touches or nearly touches (start it touching)."
         )

@@ -473,8 +473,12 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
     :class:`~fenics_matdepth.system_assembler.SystemAssembler` as
     :class:`ContactProblem`'s. :meth:`attach` also installs the solution update: the Newton
     step (times the solver's relaxation parameter) is halved until no element is inverted
-    (det F > 0 everywhere), at most ``MAX_STEP_HALVINGS`` times, after the continuous collision
-    detection has capped it (``ccd``, as in :class:`ContactProblem`'s line search).
+    (det F > 0 everywhere) and, with ``line_search``, until it lowers the residual norm (by
+    ``1e-4`` times the step's fraction), at most ``MAX_STEP_HALVINGS`` times, after the
+    continuous collision detection has capped it (``ccd``, as in :class:`ContactProblem`'s
+    line search); where no fraction lowers it, the solve fails (the NewtonSolver has no line
+    search of its own: a full step that reaches contact from a gap can throw a body deep into
+    another).
 
     Args:
         F: the user's residual form, linear in the test function.
@@ -484,6 +488,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         J: Jacobian form; default ``ufl.derivative(F, u)``.
         form_compiler_options, jit_options: passed on to dolfinx's form compilation.
         damp_free_bodies: as for :class:`ContactProblem`.
+        line_search: backtrack each Newton step on the residual norm (one more residual per
+            Newton iteration); ``False``: take it whole unless it inverts an element.
         ccd: continuous collision detection of each Newton update, as for
             :class:`ContactProblem` (the update is shortened to the entry cap; time steps
             are truncated by ``solve_time_steps``); on by default.
@@ -507,8 +513,10 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         damp_free_bodies: bool = True,
         ccd: bool = True,
         ccd_entry: float = ENTRY_FRACTION,
+        line_search: bool = True,
     ):
         _check_problem_inputs(u, contact, bcs)
+        self.line_search = bool(line_search)
         super().__init__(
             F, u, bcs=list(bcs), J=J, form_compiler_options=form_compiler_options,
             jit_options=jit_options,
@@ -516,12 +524,16 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         self.u = u
         self.contact = contact
         self.assembler = SystemAssembler(self.L, self.a, u, contact, self.bcs)
-        self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
+        # no line search: the damping falls only as far as a Newton step stays short
+        self.free_bodies = FreeBodyDamping(
+            contact, self.bcs, self.assembler, damp_free_bodies, line_search=False
+        )
         self._watch = self.assembler.watch
         self._solver = None
         self._trial = u.x.petsc_vec.duplicate()
         self.collisions = ContinuousCollision(contact.surface, ccd_entry) if ccd else None
         self.ccd_caps = 0
+        self._step_start = u.x.petsc_vec.duplicate()
         #: residual norm at each residual evaluation of the current solve
         self.residual_norms: list[float] = []
 
@@ -607,7 +619,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
 
     def _update(self, solver, dx: PETSc.Vec, x: PETSc.Vec) -> None:
         """x -= relaxation * dx, shortened to the collision detection's entry cap, then halved
-        while it would invert an element."""
+        while it would invert an element or (with ``line_search``) while it does not lower the
+        residual norm."""
         step = solver.relaxation_parameter
         if self.collisions is not None:
             x.copy(self._trial)
@@ -619,16 +632,44 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
             if fraction < 1.0:
                 step *= fraction
                 self.ccd_caps += 1
-        for _ in range(MAX_STEP_HALVINGS):
-            x.copy(self._trial)
-            self._trial.axpy(-step, dx)
-            self._trial.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-            with self._trial.localForm() as local:
-                if self.assembler.cells.min(local.array_r) > 0.0:
-                    break
-            self.assembler.rejected_states += 1
-            step /= 2.0
+        start = self.residual_norms[-1] if self.line_search and self.residual_norms else None
+        x.copy(self._step_start)  # (x is u's vector: setting a trial state overwrites it)
+        lowered = start is None
+        try:
+            for _ in range(MAX_STEP_HALVINGS):
+                self._step_start.copy(self._trial)
+                self._trial.axpy(-step, dx)
+                self._trial.ghostUpdate(
+                    addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD
+                )
+                if start is None:
+                    with self._trial.localForm() as local:
+                        if self.assembler.cells.min(local.array_r) > 0.0:
+                            break
+                    self.assembler.rejected_states += 1
+                else:
+                    self.assembler.set_state(self._trial)
+                    # (an inverted element gives a NaN residual: not lower)
+                    self.assembler.residual(self._trial, self._step_start_residual())
+                    if self._work.norm() < (1.0 - 1e-4 * step) * start:
+                        lowered = True
+                        break
+                step /= 2.0
+        finally:
+            self._step_start.copy(x)
+            self.assembler.set_state(x)
+        if not lowered:
+            raise RuntimeError(
+                f"no fraction of the Newton step down to 2^-{MAX_STEP_HALVINGS} lowers the "
+                f"residual norm {start:.3e}"
+            )
         x.axpy(-step, dx)
+
+    def _step_start_residual(self) -> PETSc.Vec:
+        """A work vector for the trial residual of :meth:`_update`."""
+        if getattr(self, "_work", None) is None:
+            self._work = self._trial.duplicate()
+        return self._work
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Solve with the attached NewtonSolver (one from :meth:`newton_solver` if none);
@@ -677,6 +718,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         this problem afterwards."""
         if getattr(self, "assembler", None) is not None:
             self.assembler.destroy()
-        if getattr(self, "_trial", None) is not None:
-            self._trial.destroy()
+        for name in ("_trial", "_step_start", "_work"):
+            if getattr(self, name, None) is not None:
+                getattr(self, name).destroy()
         self._solver = None

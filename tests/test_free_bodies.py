@@ -25,10 +25,11 @@ TRACTION = 0.02  # on the upper cube's top face (pressure; E = 1)
 GAP = 0.05  # between the block and the cube (about a ninth of the mean boundary edge)
 
 
-def _two_cubes(comm, gap=GAP):
-    """A block [0, 1]^3 (3^3 cuboids) and a cube [0, 1]^2 x [1 + gap, 2 + gap] (2^3 cuboids)
-    above it."""
-    return merged_mesh(comm, box_tetrahedra(3), box_tetrahedra(2, (0.0, 0.0, 1.0 + gap)))
+def _two_cubes(comm, gap=GAP, width=1.0):
+    """A block [0, 1]^3 (3^3 cuboids) and a cube of edge ``width`` (2^3 cuboids) centred above
+    it, its bottom at 1 + gap."""
+    corner = (0.5 - width / 2, 0.5 - width / 2, 1.0 + gap)
+    return merged_mesh(comm, box_tetrahedra(3), box_tetrahedra(2, corner, (width,) * 3))
 
 
 def _component_bc(V, where, component):
@@ -165,17 +166,53 @@ def test_body_never_held_is_named():
     assert "body 1 (27 vertices, centre (0.5, 0.5, 1.55), size 1 x 1 x 1" in message
     assert "1 of its 6 rigid motions free" in message
     assert "Dirichlet" in message and "Reduce the load step" not in message
+    # the motion contact does not hold: the vertical translation (the rollers hold the rest)
+    assert problem.free_bodies.unheld == [["translation along z"]]
+    assert "did not hold these rigid motions (body 1: translation along z)" in message
     assert problem.assembler.proximal.k == 0.0
     problem.destroy()
 
 
+def test_body_free_in_six_motions_is_named():
+    """A cube free in all six rigid motions (no rollers), pressed onto the block by a traction
+    on its top, under frictionless contact: contact holds its vertical translation and its
+    tilts, never its sliding and turning on the block's face. The damped solves end there, and
+    the message names the motions not held and the fixes; the library does not hold them with
+    a term of its own (that would bias the answer)."""
+    comm = MPI.COMM_WORLD
+    mesh = _two_cubes(comm, width=0.5)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 1.5 + GAP))
+    tags = dolfinx.mesh.meshtags(mesh, 2, top, np.full(top.size, 1, dtype=np.int32))
+    ds = ufl.Measure("ds", domain=mesh, subdomain_data=tags)
+    psi, _ = neo_hookean(u)
+    energy = psi * ufl.dx + TRACTION * u[2] * ds(1)
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=PENALTY)
+    with fm.ContactProblem(
+        residual, u, contact, bcs=[_clamp(V, bottom)], energy=energy,
+        petsc_options_prefix="free_body_six_",
+    ) as problem:  # fmt: skip
+        assert [(b.index, b.free_motions) for b in problem.free_bodies.bodies] == [(1, 6)]
+        with pytest.raises(RuntimeError) as err:
+            problem.solve()
+        unheld = ["translation along x", "translation along y", "rotation about z"]
+        assert problem.free_bodies.unheld == [unheld]
+        message = str(err.value)
+        assert f"(body 1: {', '.join(unheld)})" in message
+        assert "fm.Coulomb" in message and "Dirichlet" in message
+        assert problem.assembler.proximal.k == 0.0
+
+
 def test_nonlinear_contact_problem_damps_the_cube():
-    """The same through dolfinx's NewtonSolver, with its defaults: damped, then the undamped
-    equilibrium (force balance). The cube starts closer (a gap below the first damped motion,
-    h / 100): the NewtonSolver has no line search, and a Newton step that throws the cube
-    from a gap deep into the block diverges (measured with GAP: the damped solve that first
-    reached contact diverged at every k tried)."""
-    problem, _, area = _pushed_cube(MPI.COMM_WORLD, newton_solver=True, gap=0.002)
+    """The same through dolfinx's NewtonSolver, with its defaults, from the gap h / 9: damped,
+    then the undamped equilibrium (force balance). The NewtonSolver has no line search of its
+    own: without the problem's backtracking on the residual norm and the damping's limit on a
+    free body's motion per solve, a Newton step threw the cube from the gap deep into the
+    block, and the damped solve that first reached contact diverged at every k tried."""
+    problem, _, area = _pushed_cube(MPI.COMM_WORLD, newton_solver=True)
     result = problem.solve()
     assert result.converged and problem.free_bodies.damped
     assert problem.assembler.proximal.k == 0.0
