@@ -65,6 +65,7 @@ class Attempt:
     iterations: list[Iteration] = dataclasses.field(default_factory=list)
     linear_failures: int = 0
     converged: bool = False
+    stopped_early: bool = False  # by the step control's rate test (reason DIVERGED_DTOL)
 
 
 def parse(lines: list[str]) -> list[list[Attempt]]:
@@ -106,6 +107,7 @@ def parse(lines: list[str]) -> list[list[Attempt]]:
                 steps.append(attempts)
                 attempts = [Attempt()]
             else:
+                attempts[-1].stopped_early = "DIVERGED_DTOL" in line
                 attempts.append(Attempt())
             solve_index = -1
     return steps
@@ -188,15 +190,21 @@ def main() -> None:
     )  # fmt: skip
     print()
     print(f"knee {args.degrees:g} deg in {args.steps} steps on {args.processes} process(es); "
-          f"predictor {env.get('MATDEPTH_KNEE_PREDICTOR', '0')}")  # fmt: skip
+          f"predictor {env.get('MATDEPTH_KNEE_PREDICTOR', '0')}; step control: target "
+          f"{summary.get('target_iterations', 0)}, stop at {summary.get('stop_iterations')} "
+          f"iterations; augmented Lagrangian to {summary.get('augmented_tol_h')} h, penalty "
+          f"{summary.get('penalty')} MPa/mm")  # fmt: skip
     print(f"  reached {summary['reached_degrees']:.1f} deg, completed {summary['completed']}, "
           f"{len(steps)} steps, {sum(len(a) - 1 for a in steps)} cuts")  # fmt: skip
     print(f"  Newton iterations: {total} in all (failed attempts included), per step "
           f"{per_step}")  # fmt: skip
     print(f"  converged attempts only: {sum(converged_only)}, per step {converged_only}")
+    stopped = [len(a.iterations) for s in steps for a in s if a.stopped_early]
     print(
-        f"  attempts reaching the limit of {limit}: {at_limit}; linear-solver failures "
-        f"(GMRES on a kept factorisation): {sum(a.linear_failures for s in steps for a in s)}"
+        f"  attempts reaching the limit of {limit}: {at_limit}; stopped early by the step "
+        f"control's rate test: {len(stopped)} (after {stopped} iterations); linear-solver "
+        f"failures (GMRES on a kept factorisation): "
+        f"{sum(a.linear_failures for s in steps for a in s)}"
     )
     print("  iterations by cause:")
     for cause, count in causes.items():

@@ -51,6 +51,10 @@
 # `rotation`; below),
 # `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50),
 # `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 100),
+# `MATDEPTH_KNEE_TARGET_IT` the step control's target Newton iterations per step (default 0:
+# off, steps halve only after a failure and double back after it; 10 is FEBio's choice;
+# below), `MATDEPTH_KNEE_STOP_IT` the iterations its rate test lets an attempt be predicted to
+# need (default three times the target),
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
@@ -111,6 +115,8 @@ if predictor not in ("extrapolate", "rotation", "0"):
     raise ValueError(f"MATDEPTH_KNEE_PREDICTOR is extrapolate, rotation or 0, not {predictor!r}")
 bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
 max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 100))
+target_iterations = int(os.environ.get("MATDEPTH_KNEE_TARGET_IT", 0))
+stop_iterations = int(os.environ.get("MATDEPTH_KNEE_STOP_IT", 3 * target_iterations))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
@@ -672,8 +678,15 @@ def add_frame(grid) -> None:
 
 # ### The flexion
 #
-# 50 steps of 3°; a step that fails is retried from the last converged state with half the
-# increment (`solve_load_steps`). After each converged step the writer hook measures, writes
+# 50 steps of 3° at most; a step that fails is retried from the last converged state with half
+# the increment (`solve_load_steps`). With `MATDEPTH_KNEE_TARGET_IT` set, a step control
+# ({py:class}`fenics_matdepth.StepControl`) aims at that many Newton iterations a step: each
+# next step is scaled by the square root of the target over the last step's iterations (never
+# beyond 3°), and an attempt whose residual, over its last four iterations, falls too slowly to
+# converge within `stop_iterations` is stopped there and cut, instead of running on to the
+# iteration limit. It is off by default: up to 60° it changed little (docs/measurements.md),
+# and it has not been measured yet where it is meant to act, past 90°.
+# After each converged step the writer hook measures, writes
 # the VTX files and renders an animation frame; `solve_load_steps` then saves the step to the
 # checkpoint. The measurements so far are kept in `knee_steps.json` next to it, so that a
 # resumed run (`--resume`) reports the whole history; its VTX file and animation start at the
@@ -753,11 +766,12 @@ class ReportFailures:
     """The solver, reporting each failed attempt (why; the augmented Lagrangian's inner solves)
     before `solve_load_steps` cuts the step."""
 
-    def __init__(self, inner):
-        self.inner, self.u, self.contact = inner, inner.u, inner.contact
+    def __init__(self, problem):
+        # (`problem`: the step control's rate test finds the ContactProblem through it)
+        self.problem, self.u, self.contact = problem, problem.u, problem.contact
 
     def solve(self, raise_on_failure: bool = True):
-        result = self.inner.solve(raise_on_failure=False)
+        result = self.problem.solve(raise_on_failure=False)
         if not result.converged:
             why = result.failure_message()
             if augmented is not None:
@@ -835,7 +849,17 @@ def after_step(t: float) -> None:
 report(
     f"flexion to {total_degrees:g} deg in {num_steps} steps; penalty {penalty} MPa/mm; "
     f"augmented Lagrangian to {al_tol_h:g} h ({'off' if augmented is None else 'on'}); "
-    f"{comm.size} process(es)"
+    + (
+        f"step control: target {target_iterations}, stop at {stop_iterations} Newton iterations; "
+        if target_iterations > 0
+        else "step control off; "
+    )
+    + f"{comm.size} process(es)"
+)
+step_control = (
+    fm.StepControl(target_iterations, stop_iterations=stop_iterations)
+    if target_iterations > 0
+    else None
 )
 tic = time.perf_counter()
 failure = None
@@ -847,6 +871,7 @@ try:
         writer=after_step,
         checkpoint=checkpoint,
         resume=checkpoint if resume else None,
+        step_control=step_control,
     )
 except fm.StopRequested as err:  # on request: the checkpoint holds the last step
     failure = str(err)
@@ -1075,6 +1100,8 @@ summary = {
     "mesh": stats,
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
+    "target_iterations": target_iterations,
+    "stop_iterations": stop_iterations,
     "max_newton_iterations": max_newton,
     "target_degrees": total_degrees,
     "num_steps": num_steps,

@@ -30,6 +30,7 @@ __all__ = [
     "SHIFT_GROWTH",
     "SHIFT_START",
     "SHIFT_TRIES",
+    "SLOW_CONVERGENCE_REASON",
     "STALL_RTOL",
     "SNESCallbacks",
 ]
@@ -47,6 +48,9 @@ NAN_REASON = getattr(
     "DIVERGED_FNORM_NAN",
     getattr(PETSc.SNES.ConvergedReason, "DIVERGED_FUNCTION_NANORINF", -4),
 )
+
+#: The reason a solve stopped by its ``stop_test`` (the step control's rate test) ends with.
+SLOW_CONVERGENCE_REASON = PETSc.SNES.ConvergedReason.DIVERGED_DTOL
 
 #: ContactProblem stops with DIVERGED_LINE_SEARCH after this many consecutive iterations
 #: that changed the residual norm by less than NO_PROGRESS_RTOL (relative): the line search
@@ -80,7 +84,16 @@ SHIFT_TRIES = 8
 class SNESCallbacks:
     """The SNES callbacks of :class:`~fenics_matdepth.ContactProblem` (its base class; the
     attributes they use are set up by ``ContactProblem.__init__`` and ``ContactProblem.solve``).
+
+    Attributes:
+        stop_test: None, or called by the convergence test with each iterate as ``(iteration,
+            residual norm, target residual)``; once it returns True (and the solve has not
+            converged) the solve stops with SLOW_CONVERGENCE_REASON. Load stepping with a
+            :class:`~fenics_matdepth.StepControl` sets it to its
+            :class:`~fenics_matdepth.step_control.SlowConvergence` for its run.
     """
+
+    stop_test = None
 
     def _set_state(self, x: PETSc.Vec) -> None:
         self.assembler.set_state(x)
@@ -148,9 +161,12 @@ class SNESCallbacks:
         rtol, atol, stol, max_it = snes.getTolerances()
         if not np.isfinite(fnorm):
             return NAN_REASON
+        if iteration == 0 and not self._resuming:
+            self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
+        slow = self.stop_test is not None and self.stop_test(
+            iteration + self._iteration_offset, fnorm, max(atol, rtol * self._initial_norm)
+        )
         if iteration == 0:
-            if not self._resuming:
-                self._initial_norm, self._previous_norm, self._no_progress = fnorm, fnorm, 0
             return reasons.CONVERGED_FNORM_ABS if fnorm < atol else reasons.ITERATING
         if fnorm < atol:
             return reasons.CONVERGED_FNORM_ABS
@@ -170,6 +186,8 @@ class SNESCallbacks:
             return reasons.DIVERGED_LINE_SEARCH
         if iteration + self._iteration_offset >= max_it:
             return reasons.DIVERGED_MAX_IT
+        if slow:  # the rate test says the solve will not converge in time
+            return SLOW_CONVERGENCE_REASON
         return reasons.ITERATING
 
     def _check_direction(self, x: PETSc.Vec, y: PETSc.Vec) -> bool:

@@ -31,6 +31,7 @@ from fenics_matdepth._progress import StepProgress
 from fenics_matdepth.checkpoint import Checkpoint
 from fenics_matdepth.kinematics import CellDeterminants
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested
+from fenics_matdepth.step_control import StepControl, find_contact_problem
 
 if typing.TYPE_CHECKING:
     pass
@@ -232,8 +233,12 @@ class _LoadSteps(StepEngine):
     """:func:`solve_load_steps`'s stepping (see there)."""
 
     def __init__(self, problem, set_load, num_steps, start, end, min_step, writer, progress,
-                 predictor, checkpoint, resume):  # fmt: skip
+                 predictor, checkpoint, resume, step_control=None):  # fmt: skip
         super().__init__(problem, start, end, "load", progress)
+        self.control = step_control
+        # the rate test goes into the contact problem's convergence test for the run
+        self.rate_test = step_control.rate_test() if step_control is not None else None
+        self.judged = find_contact_problem(problem) if step_control is not None else None
         u = self.u
         self.set_load, self.writer, self.predictor = set_load, writer, predictor
         self.cells = CellDeterminants(u.function_space)
@@ -266,6 +271,21 @@ class _LoadSteps(StepEngine):
         collective_call(
             self.comm, f"set_load({t:.6g})", "Fix the set_load callback.", self.set_load, t
         )
+
+    def run(self) -> list:
+        if self.judged is None:
+            return super().run()
+        self.judged.stop_test = self.rate_test
+        try:
+            return super().run()
+        finally:
+            self.judged.stop_test = None
+
+    def attempt(self) -> str | None:
+        failure = super().attempt()
+        if failure is not None and self.rate_test is not None and self.rate_test.message:
+            failure = f"{failure} ({self.rate_test.message})"
+        return failure
 
     def finished(self) -> bool:
         nominal = self.nominal
@@ -340,7 +360,10 @@ class _LoadSteps(StepEngine):
 
     def grow(self, cuts: int) -> None:
         dt, nominal = self.dt, self.nominal
-        if abs(dt) < abs(nominal):
+        if self.control is not None:  # towards the target iterations, at most the nominal step
+            size = abs(dt) * self.control.scale(self.records[-1].iterations)
+            self.dt = min(max(size, self.min_step), abs(nominal)) * np.sign(nominal)
+        elif abs(dt) < abs(nominal):
             self.dt = min(abs(dt) * 2, abs(nominal)) * np.sign(nominal)
 
     def save(self) -> None:
@@ -376,6 +399,7 @@ def solve_load_steps(
     predictor: typing.Literal["extrapolate", "none"] = "none",
     checkpoint: str | os.PathLike | None = None,
     resume: str | os.PathLike | None = None,
+    step_control: StepControl | None = None,
 ) -> list[LoadStep]:
     """Solve ``problem`` for load factors from ``start`` to ``end`` with automatic step cutting.
 
@@ -384,7 +408,9 @@ def solve_load_steps(
     step that fails (no convergence, NaN, an inverted element raising, the line search unable
     to find an admissible state) is retried from that state with half the increment; after a
     success the increment grows back (doubles) up to the nominal ``(end - start) /
-    num_steps``. The step never overshoots ``end``.
+    num_steps``; with a ``step_control``, it is scaled towards a target number of Newton
+    iterations instead, and an attempt whose convergence rate says it will not make it is
+    stopped early. The step never overshoots ``end``.
 
     The Dirichlet values are not written into the starting state: the problems impose them
     through the first Newton step (see
@@ -414,6 +440,11 @@ def solve_load_steps(
         resume: continue from the last step saved in this checkpoint file (written by a run
             with the same ``start``, ``end``, ``num_steps`` and mesh); the returned list holds
             the steps of this call only.
+        step_control: a :class:`~fenics_matdepth.StepControl`: each next step scaled from the
+            last one's Newton iterations towards its target (never beyond the nominal step),
+            and attempts stopped by its rate test as soon as their residual's rate predicts
+            more iterations than it allows (:mod:`fenics_matdepth.step_control`). None
+            (default): steps double back after a cut, attempts run to the problem's limit.
 
     Returns:
         The converged steps. Each ``LoadStep.diagnostics`` is ``contact.diagnostics()`` plus
@@ -435,9 +466,11 @@ def solve_load_steps(
         raise ValueError(f'predictor must be "extrapolate" or "none", got {predictor!r}')
     if not (np.isfinite(start) and np.isfinite(end)) or start == end:
         raise ValueError(f"start and end must be distinct finite numbers, got {start}, {end}")
+    if step_control is not None and not isinstance(step_control, StepControl):
+        raise TypeError(f"step_control must be a StepControl or None, got {step_control!r}")
     return _LoadSteps(
         problem, set_load, num_steps, start, end, min_step, writer, progress, predictor,
-        checkpoint, resume,
+        checkpoint, resume, step_control,
     ).run()  # fmt: skip
 
 

@@ -26,7 +26,7 @@ PUBLIC = {
     "solve_nonlinear", "SolveResult", "Solvable",
     "FreeBody", "FreeBodyDamping", "find_free_bodies",
     # stepping
-    "solve_load_steps", "LoadStep", "StopRequested", "solve_time_steps", "TimeStep",
+    "solve_load_steps", "StepControl", "LoadStep", "StopRequested", "solve_time_steps", "TimeStep",
     "Newmark", "BackwardEuler", "Checkpoint",
     # wrappers over a problem
     "AugmentedLagrangian", "UzawaUpdate", "RigidModeDamping", "damping_energy",
