@@ -1,5 +1,6 @@
 """The linear-solver policy of the contact problems: PETSc options, the kept factorisation,
-the AMG thresholds, the choice of LDL^T or LU, MUMPS helpers.
+the AMG thresholds and the elasticity near-nullspace they use, the choice of LDL^T or LU,
+MUMPS helpers.
 
 Importing this module (which ``import fenics_matdepth`` does first) turns PETSc's gemv
 summation of multiple dot products off (:data:`MDOT_GEMV_OPTION`), so that the vectors created
@@ -9,6 +10,9 @@ afterwards sum in a fixed order and a run repeats to the bit.
 from __future__ import annotations
 
 from petsc4py import PETSc
+
+import dolfinx
+import numpy as np
 
 __all__ = [
     "AMG_KEPT_GROWTH",
@@ -27,6 +31,7 @@ __all__ = [
     "choose_factorisation",
     "fix_summation_order",
     "is_mumps_direct",
+    "rigid_body_modes",
     "set_solver_options",
 ]
 
@@ -232,3 +237,31 @@ def set_solver_options(
         # never factorises would otherwise leave it for PETSc to report as unused at exit
         opts.getInt(prefix + "mat_mumps_icntl_14")
     return amg, keep_factorisation
+
+
+def rigid_body_modes(V: dolfinx.fem.FunctionSpace) -> PETSc.NullSpace:
+    """The six rigid-body modes of a P1 displacement space (orthonormal, owned dofs) as a
+    PETSc null space: the near-nullspace an AMG preconditioner (GAMG) needs for elasticity
+    (collective)."""
+    comm = V.mesh.comm
+    n = V.dofmap.index_map.size_local
+    x = V.tabulate_dof_coordinates()[:n]
+    count = comm.allreduce(n)
+    x = x - comm.allreduce(x.sum(axis=0)) / max(count, 1)
+    modes = np.zeros((6, n, 3))
+    for i in range(3):
+        modes[i, :, i] = 1.0
+    modes[3, :, 0], modes[3, :, 1] = -x[:, 1], x[:, 0]
+    modes[4, :, 1], modes[4, :, 2] = -x[:, 2], x[:, 1]
+    modes[5, :, 2], modes[5, :, 0] = -x[:, 0], x[:, 2]
+    vecs = []
+    for k in range(6):
+        vec = PETSc.Vec().createMPI((3 * n, PETSc.DECIDE), bsize=3, comm=comm)
+        vec.setArray(modes[k].ravel())
+        vecs.append(vec)
+    # Gram-Schmidt across ranks
+    for k, vec in enumerate(vecs):
+        for other in vecs[:k]:
+            vec.axpy(-vec.dot(other), other)
+        vec.normalize()
+    return PETSc.NullSpace().create(vectors=vecs, comm=comm)

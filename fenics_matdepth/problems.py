@@ -29,11 +29,12 @@ from fenics_matdepth.contact.ccd import ENTRY_FRACTION, ContinuousCollision
 from fenics_matdepth.contact.friction import solve_with_updates
 from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.free_bodies import FreeBodyDamping
+from fenics_matdepth.linear_solver import rigid_body_modes
 from fenics_matdepth.results import SolveResult
 from fenics_matdepth.snes_callbacks import SNESCallbacks
 from fenics_matdepth.system_assembler import TIMING_KEYS, SystemAssembler
 
-# (kept importable from here, where they were first defined)
+# (kept importable from here, where they were first defined, as is rigid_body_modes)
 from fenics_matdepth.tolerances import looser_tolerances, own_rtol
 
 __all__ = [
@@ -47,34 +48,6 @@ __all__ = [
 #: NonlinearContactProblem halves a Newton step at most this many times while it would
 #: invert an element.
 MAX_STEP_HALVINGS = 30
-
-
-def rigid_body_modes(V: dolfinx.fem.FunctionSpace) -> PETSc.NullSpace:
-    """The six rigid-body modes of a P1 displacement space (orthonormal, owned dofs) as a
-    PETSc null space: the near-nullspace an AMG preconditioner (GAMG) needs for elasticity
-    (collective)."""
-    comm = V.mesh.comm
-    n = V.dofmap.index_map.size_local
-    x = V.tabulate_dof_coordinates()[:n]
-    count = comm.allreduce(n)
-    x = x - comm.allreduce(x.sum(axis=0)) / max(count, 1)
-    modes = np.zeros((6, n, 3))
-    for i in range(3):
-        modes[i, :, i] = 1.0
-    modes[3, :, 0], modes[3, :, 1] = -x[:, 1], x[:, 0]
-    modes[4, :, 1], modes[4, :, 2] = -x[:, 2], x[:, 1]
-    modes[5, :, 2], modes[5, :, 0] = -x[:, 0], x[:, 2]
-    vecs = []
-    for k in range(6):
-        vec = PETSc.Vec().createMPI((3 * n, PETSc.DECIDE), bsize=3, comm=comm)
-        vec.setArray(modes[k].ravel())
-        vecs.append(vec)
-    # Gram-Schmidt across ranks
-    for k, vec in enumerate(vecs):
-        for other in vecs[:k]:
-            vec.axpy(-vec.dot(other), other)
-        vec.normalize()
-    return PETSc.NullSpace().create(vectors=vecs, comm=comm)
 
 
 def _check_problem_inputs(u, contact, bcs) -> None:
