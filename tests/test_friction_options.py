@@ -127,7 +127,7 @@ def test_fixed_point_updates_take_the_lagged_pressure_to_the_final_one():
     again) takes the lagged pressure to the solution's: the gap shrinks by at least half per
     update and is below 1 % after three; ``Coulomb(updates=3)`` does the same inside
     ``ContactProblem.solve`` (in both steps: the same bound to 1e-6, the iterations of all the
-    solves)."""
+    solves), and a step solved again starts from the reference's lagged data."""
     comm = MPI.COMM_WORLD
     problem, contact, g = _block_on_slab_problem(comm, updates=0)
     _move(g, 0.0, -PRESS)
@@ -161,6 +161,10 @@ def test_fixed_point_updates_take_the_lagged_pressure_to_the_final_one():
     result = problem.solve()
     assert _lagged_and_current_bound(contact)[0] == pytest.approx(final, rel=1e-6)
     assert first + result.iterations == pytest.approx(iterations, abs=2)
+    # a step solved again (as after a failure) starts from the reference's lagged data
+    contact.update_lagged()
+    problem.solve()
+    assert _lagged_and_current_bound(contact)[0] == pytest.approx(final, rel=1e-6)
 
 
 # -- self-contact --------------------------------------------------------------------------------

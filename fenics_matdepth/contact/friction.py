@@ -213,6 +213,7 @@ class FrictionMixin:
             raise ValueError("friction needs integration='area'")
         self.friction = friction
         self._friction_ref: _Reference | None = None
+        self._friction_advanced: _Reference | None = None  # the lagged data of advance()
         self._friction_held: tuple[int, dict[str, np.ndarray]] | None = None
         self.slip_tol = 0.0
         self.friction_body_tags: np.ndarray | None = None
@@ -286,6 +287,17 @@ class FrictionMixin:
         n_owned = self.surface.owned_dof_count() // 3
         self._friction_u_ref = self.u.x.array[: 3 * n_owned].reshape(-1, 3).copy()
         self._lag()
+        self._friction_advanced = self._friction_ref
+
+    def reset_lagged(self) -> None:
+        """Go back to the lagged data taken at the last :meth:`advance` (undoing
+        :meth:`update_lagged`; a retried step starts from them)."""
+        if self._friction_ref is None or self._friction_ref is self._friction_advanced:
+            return
+        self._friction_ref = self._friction_advanced
+        self._friction_held = None
+        for key in [k for k in self._cache if k.startswith("friction")]:
+            del self._cache[key]
 
     def update_lagged(self) -> None:
         """Take the friction's normal pressures, contact normals and quadrature points at the
@@ -501,12 +513,15 @@ def solve_with_updates(
 ) -> typing.Any:
     """``solve(raise_on_failure)``, then the friction's fixed-point updates of ``contact``'s
     ``Coulomb(updates=k)``: k times, :meth:`FrictionMixin.update_lagged` and ``solve`` again
-    from the solution (collective). The result's iterations are those of all solves; a solve
-    that fails ends the updates with its result."""
-    result = solve(raise_on_failure)
+    from the solution (collective). Each call starts from the lagged data of the last
+    ``advance`` (a step retried after a failure does not inherit a failed attempt's). The
+    result's iterations are those of all solves; a solve that fails ends the updates with its
+    result."""
     friction = getattr(contact, "friction", None)
     if friction is None or not friction.updates:
-        return result
+        return solve(raise_on_failure)
+    contact.reset_lagged()  # a retried step: from the reference's lagged data again
+    result = solve(raise_on_failure)
     total = result.iterations
     for _ in range(friction.updates):
         if not result.converged:
