@@ -14,7 +14,7 @@ the smallest, the linear momentum drift (relative to one body's momentum), Newto
 per step (mean, max), cuts, contact steps, and the wall time.
 
 Run: ``scripts/fenicsx python3 benchmarks/bench_impacts.py [--models cubes blocks]
-[--schemes endpoint midpoint] [--methods newmark backward_euler] [--cells 5]``
+[--schemes endpoint midpoint discrete_gradient] [--methods newmark backward_euler] [--cells 5]``
 (or under ``mpirun -n 2``).
 """
 
@@ -141,7 +141,11 @@ def main() -> None:
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     has_choice = "contact_force" in inspect.signature(fm.solve_time_steps).parameters
-    schemes = args.schemes if args.schemes else (["endpoint", "midpoint"] if has_choice else [None])
+    schemes = (
+        args.schemes
+        if args.schemes
+        else (list(fm.impacts.CONTACT_FORCES) if has_choice else [None])
+    )
     setups = {
         # (offset, speed, dt, t_end)
         "cubes": (0.1, 0.5, 0.01, 0.6),

@@ -269,7 +269,10 @@ def solve_time_steps(
             ``"endpoint"`` (the force at the end of the step, like every other internal
             force). Default: ``"endpoint"``; ``"midpoint"`` removes the energy flat faces
             meeting gain, but gains where a contact starts late in a step (``docs/dynamics.md``,
-            "Energy at impacts").
+            "Energy at impacts"). ``"discrete_gradient"``
+            (:class:`~fenics_matdepth.impacts.DiscreteGradientContact`; average-acceleration
+            Newmark or backward Euler, area integration, no friction): the contact force's work
+            over each step is the change of the contact energy, exactly.
 
     Returns:
         The initial state (step 0) and every converged step, in time order.
