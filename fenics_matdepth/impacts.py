@@ -237,9 +237,17 @@ class MidpointContact:
     Args:
         operator: the contact operator of ``integrator.u``.
         integrator: the :class:`~fenics_matdepth.Newmark` integrator (``u_prev`` is ``u_n``).
+
+    Raises:
+        ValueError: for an operator with friction (its terms are not evaluated at the midpoint).
     """
 
     def __init__(self, operator: ContactOperator, integrator):
+        if operator.friction is not None:
+            raise ValueError(
+                'contact_force="midpoint" does not carry friction (its dissipative terms are '
+                'lagged per step, not evaluated at the midpoint); use contact_force="endpoint"'
+            )
         self.operator = operator
         self.integrator = integrator
         self.u = operator.u

@@ -171,6 +171,17 @@ def test_midpoint_contact_force_needs_average_acceleration():
     cubes.problem.destroy()
 
 
+def test_midpoint_contact_force_refuses_friction():
+    """The midpoint force evaluates the penalty at the step's midpoint; friction's lagged
+    terms are not part of it, so an operator with friction is refused by name, not dropped."""
+    mesh = _two_cubes(MPI.COMM_WORLD, 1, offset=0.13)
+    u = dolfinx.fem.Function(dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,))))
+    penalty = fm.propose_penalty(mesh, E)
+    op = fm.ContactOperator(u, fm.material_depth(mesh), penalty=penalty, friction=fm.Coulomb(0.3))
+    with pytest.raises(ValueError, match="does not carry friction"):
+        MidpointContact(op, fm.Newmark(u, 0.01, rho=RHO))
+
+
 def test_failed_step_names_a_stalled_residual():
     """A step given up on with a residual stuck at its round-off floor says so, with the
     remedy; a converging history without contact names nothing."""
