@@ -460,21 +460,10 @@ class DiscreteGradientContact(MidpointContact):
     def add_lifting(self, b: PETSc.Vec, offset: np.ndarray) -> None:
         """``b += J[:, D] offset[D]`` with the discrete gradient's Jacobian, from the pairs
         with a Dirichlet dof not yet on its value (collective)."""
-        s = self.operator.surface
-        held = s.pull(np.asarray(offset, dtype=float).reshape(-1, 3)).reshape(-1)
-        dofs = vals = np.empty(0)
-        if held.any():
-            pair_dofs = assembly.pair_dofs(self.pairs.verts)
-            moved = held[pair_dofs]
-            sel = np.flatnonzero(moved.any(axis=1))
-            if sel.size:
-                contrib = np.einsum("pij,pj->pi", self._scaled_jacobian()[sel], moved[sel])
-                keep = ~s.bc[pair_dofs[sel]]
-                dofs = assembly.global_dofs(s, pair_dofs[sel][keep])
-                vals = contrib[keep]
-        b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
-        b.assemblyBegin()
-        b.assemblyEnd()
+        assembly.add_lifting_pairs(
+            self.operator.surface, b, offset, lambda: self.pairs.verts,
+            lambda sel: self._scaled_jacobian()[sel],
+        )  # fmt: skip
 
     def add_jacobian(
         self, A: PETSc.Mat, bcs: typing.Sequence[dolfinx.fem.DirichletBC] | None = None

@@ -10,6 +10,8 @@ vertex-coupling keys, Hessian blocks summed into it, the CSR handed to PETSc) ar
 
 from __future__ import annotations
 
+import typing
+
 from mpi4py import MPI
 from petsc4py import PETSc
 
@@ -24,6 +26,7 @@ from fenics_matdepth.contact.surface import ContactSurface
 
 __all__ = [
     "add_jacobian_blocks",
+    "add_lifting_pairs",
     "coupling_positions",
     "create_matrix",
     "global_dirichlet_dofs",
@@ -270,6 +273,39 @@ def global_dofs(surface: ContactSurface, held_dofs: np.ndarray) -> np.ndarray:
     """Global dof numbers of held dofs ``3 h + c``."""
     held_dofs = np.asarray(held_dofs, dtype=INDEX)
     return 3 * surface.global_vertex[held_dofs // 3] + held_dofs % 3
+
+
+def add_lifting_pairs(
+    surface: ContactSurface,
+    b: PETSc.Vec,
+    offset: np.ndarray,
+    verts: typing.Callable[[], np.ndarray],
+    hessians: typing.Callable[[np.ndarray], np.ndarray],
+) -> None:
+    """``b += H[:, D] offset[D]`` over the pairs with a Dirichlet dof not yet on its value
+    (collective): the contact share of DOLFINx's lifting, rows of Dirichlet dofs left out.
+
+    Args:
+        surface: what the rank holds.
+        b: the residual vector (before ``set_bc``).
+        offset: (3 n_owned,) ``g - x`` at the owned Dirichlet dofs, zero elsewhere.
+        verts: returns the (n, m) held vertices of the pairs (called only if a dof is held).
+        hessians: the (k, 3 m, 3 m) pair Hessians of the selected pairs (indices into verts).
+    """
+    held = surface.pull(np.asarray(offset, dtype=FLOAT).reshape(-1, 3)).reshape(-1)
+    dofs = vals = np.empty(0)
+    if held.any():
+        dofs_of_pairs = pair_dofs(verts())
+        moved = held[dofs_of_pairs]
+        sel = np.flatnonzero(moved.any(axis=1))
+        if sel.size:
+            contrib = np.einsum("pij,pj->pi", hessians(sel), moved[sel])
+            keep = ~surface.bc[dofs_of_pairs[sel]]
+            dofs = global_dofs(surface, dofs_of_pairs[sel][keep])
+            vals = contrib[keep]
+    b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
+    b.assemblyBegin()
+    b.assemblyEnd()
 
 
 def pair_dofs(verts: np.ndarray) -> np.ndarray:

@@ -346,23 +346,10 @@ class ContactOperator(FrictionMixin):
             offset: (3 n_owned,) ``g - x`` at the owned Dirichlet dofs of :meth:`set_bcs`,
                 zero elsewhere.
         """
-        s = self.surface
-        held = s.pull(np.asarray(offset, dtype=FLOAT).reshape(-1, 3)).reshape(-1)
-        dofs = vals = np.empty(0)
-        if held.any():
-            verts = self._pair_verts()
-            pair_dofs = assembly.pair_dofs(verts)
-            moved = held[pair_dofs]
-            sel = np.flatnonzero(moved.any(axis=1))
-            if sel.size:
-                _, _, hess = self._kernel_pass(sel, True, True)
-                contrib = np.einsum("pij,pj->pi", hess, moved[sel])
-                keep = ~s.bc[pair_dofs[sel]]
-                dofs = assembly.global_dofs(s, pair_dofs[sel][keep])
-                vals = contrib[keep]
-        b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
-        b.assemblyBegin()
-        b.assemblyEnd()
+        assembly.add_lifting_pairs(
+            self.surface, b, offset, self._pair_verts,
+            lambda sel: self._kernel_pass(sel, True, True)[2],
+        )  # fmt: skip
 
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
         """Remember the Dirichlet dofs, whose Jacobian rows and columns stay out (collective)."""
