@@ -52,7 +52,7 @@
 # `MATDEPTH_DEMO_QUICK=1` runs a reduced scene (3 x 2 rods, a shorter time) for the test suite;
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`);
 # `MATDEPTH_RODS_MU=0.3` adds Coulomb friction with that coefficient
-# ({py:class}`fenics_matdepth.Coulomb`, {doc}`friction`): the contact fields (pressure,
+# ({py:class}`fenics_matdepth.Coulomb`, {doc}`/friction`): the contact fields (pressure,
 # penetration, traction, slip, stick/slip status) then go to the XDMF file with every step,
 # and a last picture shows the status (`MATDEPTH_RODS_T_END` sets the end time).
 

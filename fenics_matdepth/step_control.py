@@ -14,11 +14,13 @@ Abaqus's time incrementation do:
   largest step) nor below ``min_step``;
 - an attempt is stopped as soon as, from the target on, its residual's rate over the last
   ``window`` iterations predicts that it needs more than ``stop_iterations`` iterations in all
-  (:class:`SlowConvergence`, Abaqus's logarithmic rate-of-convergence check); the step is then
-  retried from the last converged state with half the increment, as after any failure.
+  (:class:`~fenics_matdepth.step_control.SlowConvergence`, Abaqus's logarithmic
+  rate-of-convergence check); the step is then retried from the last converged state with
+  half the increment, as after any failure.
 
 The rate test needs a :class:`~fenics_matdepth.ContactProblem` (its SNES convergence test
-consults it), as the problem or inside the wrappers (:class:`~fenics_matdepth.AugmentedLagrangian`,
+consults it), as the problem or inside the wrappers
+(:class:`~fenics_matdepth.AugmentedLagrangian`,
 :class:`~fenics_matdepth.PenaltyContinuation`, :class:`~fenics_matdepth.RigidModeDamping`,
 anything holding it as ``problem``); where there is none (the DOLFINx ``NewtonSolver`` of
 :class:`~fenics_matdepth.NonlinearContactProblem`) only the step scaling applies. Each inner
@@ -148,7 +150,8 @@ class StepControl:
         return min(max(factor, 1.0 / self.max_growth), self.max_growth)
 
     def rate_test(self) -> SlowConvergence:
-        """A new :class:`SlowConvergence` with this control's settings."""
+        """A new :class:`~fenics_matdepth.step_control.SlowConvergence` with this control's
+        settings."""
         return SlowConvergence(self.target_iterations, self.max_iterations, self.window)
 
 

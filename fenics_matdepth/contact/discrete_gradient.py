@@ -36,7 +36,7 @@ def step_pairs(
         x0, x1: (num_held, 3) held vertex coordinates at the step's start and end (L).
 
     Returns:
-        (triangle, tetrahedron) index arrays: rows of ``surface.tri`` and ``surface.tets``.
+        The (triangle, tetrahedron) index arrays, rows of ``surface.tri`` and ``surface.tets``.
     """
     tets = surface.tets
     if tets.shape[0] == 0 or surface.tri.shape[0] == 0:
@@ -65,7 +65,9 @@ class StepPairs:
 
     Attributes:
         verts: (n, 7) held vertices of each pair.
-        energy0, energy_mid, energy1: (n,) pair energies at the start, midpoint and end.
+        energy0: (n,) pair energies at the step's start.
+        energy_mid: (n,) pair energies at its midpoint.
+        energy1: (n,) pair energies at its end.
         grad_mid: (n, 21) pair gradients at the midpoint.
         gradient: (n, 21) pair discrete gradients.
         coefficient: (n,) their ``c``.

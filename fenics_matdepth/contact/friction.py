@@ -132,7 +132,7 @@ class Coulomb:
         Args:
             body_a, body_b: body indices.
             tag_of_body: with ``cell_tags``, each body's tag (-1: untagged; see
-                :func:`body_tags`), which the keys of ``mu`` name.
+                :func:`~fenics_matdepth.contact.friction.body_tags`), which the keys of ``mu`` name.
         """
         body_a, body_b = np.asarray(body_a), np.asarray(body_b)
         if not isinstance(self.mu, dict):
@@ -482,14 +482,14 @@ class FrictionMixin:
         of the reference pairs whose vertices the rank holds; None without friction).
 
         Returns:
-            Per point: ``verts`` (nq, 7), the global vertex numbers of its pair (triangle then
-            tetrahedron); ``coef`` (nq, 7), the slip's coefficients on them (the triangle's
-            barycentrics, then minus the tetrahedron's); ``area`` (``w``, L^2); ``weight``
-            (``c = w mu p``, F); ``slip_length`` (``y``, L) and ``slip`` (nq, 3; the
+            A dict of per-point arrays; ``verts`` (nq, 7), the global vertex numbers of its pair
+            (triangle then tetrahedron); ``coef`` (nq, 7), the slip's coefficients on them (the
+            triangle's barycentrics, then minus the tetrahedron's); ``area`` (``w``, L^2);
+            ``weight`` (``c = w mu p``, F); ``slip_length`` (``y``, L) and ``slip`` (nq, 3; the
             tangential slip of the triangle's point relative to the tetrahedron's since the
-            reference, L); ``ratio`` (``f1(y) = |t_T| / (mu p)``); ``force`` (nq, 3; the
-            tangential force on the triangle's side, F). A point sticks where ``slip_length``
-            is below ``slip_tol``.
+            reference, L); ``ratio`` (``f1(y) = |t_T| / (mu p)``); ``force`` (nq, 3; the tangential
+            force on the triangle's side, F). A point sticks where ``slip_length`` is below
+            ``slip_tol``.
         """
         if self._friction_ref is None:
             return None
