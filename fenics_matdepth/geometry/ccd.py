@@ -96,7 +96,12 @@ def _segment_dist2(x, a, b, c, d):
     return px * px + py * py + pz * pz
 
 
-@njit(inline="always")
+# _distance, _advance and _entry_cap are compiled once each and called, not inlined
+# (inline="always"): numba inlines at the level of its own IR, and _sweep_caps, which reaches
+# six copies of the distance through two _primitive_cap calls, took 125 s of CPU to compile
+# inlined against under 25 s called (cold cache, benchmarks/bench_ccd.py's process: 160 s of
+# user time against 35 s), at the same query time.
+@njit
 def _distance(kind, xs):
     """Distance of the pair whose (4, 3) coordinates are ``xs``."""
     if kind == VERTEX_TRIANGLE:
@@ -126,7 +131,7 @@ def _at(x0, x1, t, xs):
             xs[i, k] = x0[i, k] + t * (x1[i, k] - x0[i, k])
 
 
-@njit(inline="always")
+@njit
 def _advance(kind, x0, x1, xs, stop, tol, max_steps):
     """Conservative advancement to distance ``stop`` (see the module doc).
 
@@ -153,7 +158,7 @@ def _advance(kind, x0, x1, xs, stop, tol, max_steps):
     return t, d, lip, True
 
 
-@njit(inline="always")
+@njit
 def _entry_cap(kind, x0, x1, xs, entry, max_steps):
     """Entry cap of one pair (the module doc): 1 where the pair starts within ``entry``."""
     _at(x0, x1, 0.0, xs)
