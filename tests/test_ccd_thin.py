@@ -68,6 +68,9 @@ def _scene(comm, ccd: bool, solver: str = "snes"):
         )
     else:
         problem = fm.NonlinearContactProblem(residual, u, contact, bcs, ccd=ccd)
+        # the truncated step's first try (dt 2.1e-3) does not converge and is halved: given up
+        # after 15 iterations, not 50 (CI time)
+        problem.newton_solver(max_it=15)
     X_z = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, 2]
     return problem, integrator, psi * ufl.dx, X_z, X_z > 0.01, np.isclose(X_z, 0.0)
 
