@@ -22,6 +22,10 @@ if typing.TYPE_CHECKING:
 
 __all__ = ["solve_time_steps"]
 
+#: A converged step whose trajectory takes a pair past the entry tolerance is truncated
+#: unless no pair went deeper than this many entry tolerances past its first contact.
+ACCEPTED_ENTRY = 1.5
+
 
 def _form_value(form, comm, missing: float = 0.0) -> float:
     if form is None:
@@ -89,10 +93,26 @@ class _TimeSteps(StepEngine):
             integrator.restore()
         self.truncate = None
         if self.predict and self.collisions is not None:
-            # Newton starts on this side of any surface the prediction would jump through
             u_prev, u = integrator.u_prev.x.array, self.u.x.array
             fraction = self.collisions.step_fraction(u_prev, u)
+            if fraction < 1.0 and this_dt > self.min_dt:
+                # the step ends where the prediction (u_prev + dt v_prev, linear in dt) makes
+                # first contact: truncating at the converged state's cap instead chased caps
+                # near 1, as the solver stops a body at the surface whatever the step (43
+                # truncations of about 0.965 each on a plate falling edge-first)
+                self.truncations += 1
+                full, this_dt = this_dt, max(this_dt * fraction, self.min_dt)
+                self.this_dt = integrator.dt = this_dt
+                self.reporter.message(
+                    f"      t {t:.5g}: dt {full:.3g} truncated to {this_dt:.3g} at the "
+                    "predicted contact"
+                )
+                if self.set_time is not None:
+                    self.set_time(t + this_dt)
+                integrator.predict()
+                fraction = self.collisions.step_fraction(u_prev, u)
             if fraction < 1.0:
+                # Newton starts on this side of any surface the prediction would jump through
                 u[:] = u_prev + fraction * (u - u_prev)
 
     def check(self, result: SolveResult) -> str | None:
@@ -100,8 +120,16 @@ class _TimeSteps(StepEngine):
         the step is accepted anyway). A step whose trajectory takes a surface deeper than the
         entry tolerance into another it was apart from is truncated at that fraction."""
         if self.collisions is not None:
-            fraction = self.collisions.step_fraction(self.integrator.u_prev.x.array, self.u.x.array)
-            if fraction < 1.0 and self.this_dt > self.min_dt:
+            u_prev, u = self.integrator.u_prev.x.array, self.u.x.array
+            fraction = self.collisions.step_fraction(u_prev, u)
+            # where the solver holds a pair near the entry tolerance whatever the step, cutting
+            # again gains nothing (seen: 24 truncations, each by less than 1 %): the step is
+            # kept when no pair went more than ACCEPTED_ENTRY entry tolerances past contact
+            if (
+                fraction < 1.0
+                and self.this_dt > self.min_dt
+                and self.collisions.step_fraction(u_prev, u, ACCEPTED_ENTRY) < 1.0
+            ):
                 self.truncate = fraction
                 return f"truncated at {fraction:.3g} of the step (continuous collision detection)"
         if not self.this_dt / 2 >= self.min_dt:

@@ -68,6 +68,9 @@ def _scene(comm, ccd: bool, solver: str = "snes"):
         )
     else:
         problem = fm.NonlinearContactProblem(residual, u, contact, bcs, ccd=ccd)
+        # the truncated step's first try (dt 2.1e-3) does not converge and is halved: given up
+        # after 15 iterations, not 50 (CI time)
+        problem.newton_solver(max_it=15)
     X_z = V.tabulate_dof_coordinates()[: V.dofmap.index_map.size_local, 2]
     return problem, integrator, psi * ufl.dx, X_z, X_z > 0.01, np.isclose(X_z, 0.0)
 
@@ -143,14 +146,15 @@ def test_thin_plate_passes_through_without_collision_detection():
 def test_thin_plate_falling_edge_first_is_stopped_at_the_impact(solver):
     """With the collision detection (default; ContactProblem's line search or
     NonlinearContactProblem's update, and the time step's truncation): the first step is
-    truncated at the impact, the edge ends it no deeper than the entry tolerance below the
-    lower plate's top face, and the total energy has not grown beyond the initial kinetic
-    energy (by more than 1 %). (Stopping the plate after that is the penalty's work, and a
-    layer one element thick is a finite barrier: measured with ContactProblem, the edge was
-    0.0107, 0.0386 and 0.0579 below the top face after 1, 2 and 3 steps; docs/dynamics.md.)"""
+    truncated once, at the predicted impact, not again and again after converging; the edge
+    ends it no deeper than the entry tolerance below the lower plate's top face, and the
+    total energy has not grown beyond the initial kinetic energy (by more than 1 %). (Stopping
+    the plate after that is the penalty's work, and a layer one element thick is a finite
+    barrier: measured with ContactProblem, the edge was 0.0052, 0.0331 and 0.0585 below the
+    top face after 1, 2 and 3 steps; docs/dynamics.md.)"""
     heights, records, entry = _fall(ccd=True, steps=1, solver=solver)
     first = records[0]
-    assert first.truncations >= 1 and first.dt < DT
+    assert first.truncations == 1 and first.dt < DT, (first.truncations, first.dt)
     assert -entry * (1 + 1e-6) <= heights[0] < GAP, (heights[0], entry)
     kinetic = 0.5 * RHO * 0.2 * 0.2 * THICKNESS * SPEED**2
     assert first.total_energy <= 1.01 * kinetic, (first.total_energy, kinetic)

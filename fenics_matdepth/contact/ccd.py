@@ -132,7 +132,9 @@ class ContinuousCollision:
         x += self.X
         return x
 
-    def step_fraction(self, u0_owned: np.ndarray, u1_owned: np.ndarray) -> float:
+    def step_fraction(
+        self, u0_owned: np.ndarray, u1_owned: np.ndarray, entry_scale: float = 1.0
+    ) -> float:
         """The fraction of the step from ``u0`` to ``u1`` (owned dof values) that keeps every
         pair apart at ``u0`` from going deeper than its entry tolerance past first contact
         (1: the whole step; collective, the same on every rank).
@@ -141,7 +143,11 @@ class ContinuousCollision:
             u0_owned: displacement at the step's start, this rank's owned dofs (or more:
                 ghosts after them are ignored).
             u1_owned: displacement at the step's end, the same layout.
+            entry_scale: the entry tolerances times this (> 0) for this query: a pair counts
+                as apart at ``u0`` beyond the scaled tolerance, and may go that deep.
         """
+        if not entry_scale > 0.0:
+            raise ValueError(f"entry_scale must be > 0, got {entry_scale}")
         tic = time.perf_counter()
         x0 = self.positions(u0_owned)
         x1 = self.positions(u1_owned)
@@ -159,7 +165,8 @@ class ContinuousCollision:
             qa, qb = self._tree.query_boxes(lo, hi)
             best, capped, kind, i, j = sweep_caps(
                 x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
-                self.edge_owner, self.entry, self._owned_tri[qa], qb,
+                self.edge_owner, self.entry if entry_scale == 1.0 else entry_scale * self.entry,
+                self._owned_tri[qa], qb,
             )  # fmt: skip
             which = (int(kind), int(i), int(j))
         best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)

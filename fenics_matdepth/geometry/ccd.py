@@ -96,12 +96,15 @@ def _segment_dist2(x, a, b, c, d):
     return px * px + py * py + pz * pz
 
 
-# _distance, _advance and _entry_cap are compiled once each and called, not inlined
-# (inline="always"): numba inlines at the level of its own IR, and _sweep_caps, which reaches
-# six copies of the distance through two _primitive_cap calls, took 125 s of CPU to compile
-# inlined against under 25 s called (cold cache, benchmarks/bench_ccd.py's process: 160 s of
-# user time against 35 s), at the same query time.
-@njit
+# The pair-level helpers below (_distance, _advance, _entry_cap, _primitive_cap) are compiled
+# once each (cache=True) and called, not inlined into the drivers: inlining them at numba's IR
+# level put a dozen copies of the two distance routines into _sweep_caps, whose first
+# compilation then took minutes (1,050 s against 146 s for both drivers, measured on a loaded
+# machine; in CPU time, benchmarks/bench_ccd.py's whole first run took 160 s inlined against
+# 35 s called); LLVM still inlines the calls where it pays, and the query time is unchanged.
+
+
+@njit(cache=True)
 def _distance(kind, xs):
     """Distance of the pair whose (4, 3) coordinates are ``xs``."""
     if kind == VERTEX_TRIANGLE:
@@ -131,7 +134,7 @@ def _at(x0, x1, t, xs):
             xs[i, k] = x0[i, k] + t * (x1[i, k] - x0[i, k])
 
 
-@njit
+@njit(cache=True)
 def _advance(kind, x0, x1, xs, stop, tol, max_steps):
     """Conservative advancement to distance ``stop`` (see the module doc).
 
@@ -158,7 +161,7 @@ def _advance(kind, x0, x1, xs, stop, tol, max_steps):
     return t, d, lip, True
 
 
-@njit
+@njit(cache=True)
 def _entry_cap(kind, x0, x1, xs, entry, max_steps):
     """Entry cap of one pair (the module doc): 1 where the pair starts within ``entry``."""
     _at(x0, x1, 0.0, xs)
@@ -208,7 +211,7 @@ def _gather4(x, i0, i1, i2, i3, out):
         out[3, k] = x[i3, k]
 
 
-@njit(inline="always")
+@njit(cache=True)
 def _primitive_cap(kind, x0, x1, i0, i1, i2, i3, blk0, blk1, xs, entry, max_steps):
     """Entry cap of the pair of rows (i0, i1, i2, i3) of the positions ``x0``, ``x1`` (the
     vertex and the triangle, or the two edges), through the scratch blocks."""
