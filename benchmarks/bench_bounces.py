@@ -49,7 +49,7 @@ def ball_over_plate(comm: MPI.Comm, size: float) -> dolfinx.mesh.Mesh:
     return mesh
 
 
-def run(mesh, scheme: str, dt: float, t_end: float) -> dict:
+def run(mesh, scheme: str, dt: float, t_end: float, verbose: bool = False) -> dict:
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     v = ufl.TestFunction(V)
@@ -85,6 +85,9 @@ def run(mesh, scheme: str, dt: float, t_end: float) -> dict:
     def on_step(record):
         z = mesh.comm.allreduce(dolfinx.fem.assemble_scalar(height_form)) / mass
         heights.append(z - RADIUS)  # the centre of mass above the plate, minus the radius
+        if verbose and len(heights) >= 3 and heights[-3] < heights[-2] >= heights[-1]:
+            if mesh.comm.rank == 0:  # an apex, as it comes (long runs)
+                print(f"  {scheme}: apex {heights[-2] / DROP:.3f} at t {record.t:.3f}", flush=True)
 
     tic = time.perf_counter()
     on_step(None)
@@ -116,6 +119,7 @@ def main() -> None:
     parser.add_argument("--dt", type=float, default=0.01)
     parser.add_argument("--size", type=float, default=0.08)
     parser.add_argument("--schemes", nargs="*", default=["endpoint", "midpoint"])
+    parser.add_argument("--verbose", action="store_true", help="print each apex as it comes")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     mesh = ball_over_plate(comm, args.size)
@@ -123,7 +127,7 @@ def main() -> None:
     if comm.rank == 0:
         print(f"{comm.size} rank(s), {cells} tetrahedra, dt {args.dt}, t_end {args.t_end}")
     for scheme in args.schemes:
-        r = run(mesh, scheme, args.dt, args.t_end)
+        r = run(mesh, scheme, args.dt, args.t_end, args.verbose)
         if comm.rank != 0:
             continue
         a = r["apexes"]

@@ -54,7 +54,10 @@
 # `MATDEPTH_RODS_MU=0.3` adds Coulomb friction with that coefficient
 # ({py:class}`fenics_matdepth.Coulomb`, {doc}`/friction`): the contact fields (pressure,
 # penetration, traction, slip, stick/slip status) then go to the XDMF file with every step,
-# and a last picture shows the status (`MATDEPTH_RODS_T_END` sets the end time).
+# and a last picture shows the status (`MATDEPTH_RODS_T_END` sets the end time);
+# `MATDEPTH_RODS_GAMMA=0.5 MATDEPTH_RODS_CONTACT_FORCE=discrete_gradient` steps with average
+# acceleration and the contact force whose work is the change of the contact energy
+# ({doc}`/dynamics`, "Energy at impacts").
 
 # +
 from __future__ import annotations
@@ -173,7 +176,11 @@ bcs = [fem.dirichletbc(np.zeros(3), support, V)]
 u = fem.Function(V, name="displacement")
 v = ufl.TestFunction(V)
 dt = float(os.environ.get("MATDEPTH_RODS_DT", "0.01"))  # s: the nominal step
-integrator = fm.Newmark(u, dt, beta=0.3025, gamma=0.6, rho=density)
+# MATDEPTH_RODS_GAMMA = 0.5 (average acceleration, no numerical damping) with
+# MATDEPTH_RODS_CONTACT_FORCE = discrete_gradient: contact that creates no energy at impacts
+gamma = float(os.environ.get("MATDEPTH_RODS_GAMMA", "0.6"))
+integrator = fm.Newmark(u, dt, beta=(gamma + 0.5) ** 2 / 4, gamma=gamma, rho=density)
+contact_force = os.environ.get("MATDEPTH_RODS_CONTACT_FORCE") or None
 F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
 psi = fm.materials.neo_hookean(F_def, mu, kappa)
 g = fem.Constant(domain, gravity)
@@ -304,6 +311,7 @@ frame(None)
 history = fm.solve_time_steps(
     problem, integrator, t_end, dt, writer=write, on_step=frame, min_dt=dt / 64,
     strain_energy=strain_energy, external_work=gravity_work, max_penetration=h / 3,
+    contact_force=contact_force,
 )  # fmt: skip
 xdmf.close()
 steps = history[1:]
