@@ -57,7 +57,11 @@
 # ## Implementation
 #
 # `MATDEPTH_DEMO_QUICK=1` selects a coarser mesh, a shorter snake and a shorter path (for the
-# test suite); `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`).
+# test suite); `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`);
+# `MATDEPTH_SNAKE_MU=0.3` adds Coulomb friction with that coefficient between the apple and the
+# snake ({py:class}`fenics_matdepth.Coulomb`, {doc}`/friction`): the wall is then dragged along
+# with the apple, and each step records the force that pushes the core and the friction's
+# dissipation and stick/slip counts.
 
 # +
 from __future__ import annotations
@@ -71,7 +75,7 @@ from mpi4py import MPI
 
 import numpy as np
 import ufl
-from dolfinx import fem, io, plot
+from dolfinx import fem, io, la, plot
 
 import fenics_matdepth as fm
 from fenics_matdepth.meshing import interpolation_points
@@ -129,6 +133,7 @@ geometry = {
     "apple_size": 3.5 if quick else 1.8,
 }
 apple_end = 16.0 if quick else 30.0  # mm: x of the apple's centre at the end
+friction_mu = float(os.environ.get("MATDEPTH_SNAKE_MU", "0"))
 domain, cell_tags, facet_tags = snake_mesh(comm, **geometry)
 V = fem.functionspace(domain, ("Lagrange", 1, (3,)))
 num_tets = domain.topology.index_map(3).size_global
@@ -197,7 +202,8 @@ bcs = [
     fem.dirichletbc(np.zeros(3), lip_dofs, V),
     fem.dirichletbc(core_translation, core_dofs, V),
 ]
-contact = fm.ContactOperator(u, depth, penalty)
+friction = fm.Coulomb(friction_mu) if friction_mu > 0.0 else None
+contact = fm.ContactOperator(u, depth, penalty, friction=friction)
 problem = fm.ContactProblem(
     residual, u, contact, bcs=bcs, energy=energy, petsc_options_prefix="snake_apple_",
     petsc_options={"snes_max_it": 30},
@@ -265,6 +271,7 @@ hoop_expr = fem.Expression(ufl.sqrt(ufl.dot(F * e_theta, F * e_theta)), interpol
 jacobian = fem.Function(DG0, name="det_F")
 jacobian_expr = fem.Expression(ufl.det(F), interpolation_points(DG0))
 snake_cells = cell_tags.find(SNAKE)
+bulk_residual = fem.form(residual)
 snake_cell_dofs = DG0.dofmap.list[snake_cells[snake_cells < num_owned_cells], 0]
 num_owned_dg0 = DG0.dofmap.index_map.size_local  # one per owned cell
 X_blocks = V.tabulate_dof_coordinates()
@@ -276,7 +283,13 @@ def measure() -> dict:
     jacobian.interpolate(jacobian_expr)
     x_now = X_blocks + u.x.array.reshape(-1, 3)
     mine = apple_blocks[apple_blocks < n_owned]
+    # the force that moves the core along the axis: the bulk residual at its (prescribed)
+    # dofs, which contact does not reach (the core lies 6 mm inside the apple's surface)
+    forces = fem.assemble_vector(bulk_residual)
+    forces.scatter_reverse(la.InsertMode.add)  # the ghosts' shares onto their owners
+    forces = forces.array.reshape(-1, 3)
     return {
+        "push_force": comm.allreduce(float(forces[owned_core, 0].sum())),
         "max_stretch": comm.allreduce(
             float(hoop.x.array[snake_cell_dofs].max(initial=0.0)), MPI.MAX
         ),
@@ -382,6 +395,9 @@ def after_step(t: float) -> None:
         "relative_penetration": diag["max_penetration"] / h_snake,
         **measure(),
     }
+    for key in ("friction_dissipation", "stick_points", "slip_points"):
+        if key in diag:
+            record[key] = diag[key]
     records.append(record)
     converged_states.append((t, u.x.array.copy()))
     del converged_states[:-2]
@@ -390,7 +406,7 @@ def after_step(t: float) -> None:
     report(
         f"    apple at x = {record['apple_x']:5.1f} mm: max circumferential stretch "
         f"{record['max_stretch']:.2f}, min det F {record['min_det_F']:.3f}, penetration "
-        f"{record['relative_penetration']:.3f} h"
+        f"{record['relative_penetration']:.3f} h, push {record['push_force']:.3g} N"
     )
 
 
@@ -461,6 +477,7 @@ summary = {
     "zero_depth_tetrahedra": zero_depth,
     "snake_size": h_snake,
     "penalty": penalty,
+    "mu": friction_mu,
     "seconds": seconds,
     "pictures": pictures,
     "steps": records,

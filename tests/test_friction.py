@@ -23,6 +23,7 @@ from conftest import (
 import fenics_matdepth as fm
 from fenics_matdepth.contact.kernels.friction import (
     empty_reference,
+    friction_blocks,
     friction_pairs,
     friction_points,
     friction_reference,
@@ -120,6 +121,47 @@ def test_pair_derivatives_match_finite_differences(case):
     # the Hessian is positive semi-definite (the potential is convex in the positions)
     assert np.linalg.eigvalsh(hess).min() >= -1e-10 * np.abs(hess).max()
     assert np.all(ratio <= 1.0)
+
+
+def test_blocks_sum_the_pair_hessians():
+    """friction_blocks, which sums each point's Hessian into 3 x 3 vertex blocks without
+    forming the pair Hessians, equals the pair Hessians of friction_pairs summed into a dense
+    matrix: two pairs sharing vertices (one pair's points twice, mapped onto other vertices),
+    a Dirichlet dof's row and column left out, a coupling outside the pattern left out."""
+    rng = np.random.default_rng(3)
+    depth = np.zeros(7)
+    depth[3:7] = [0.3, 0.1, 0.05, 0.0]
+    x0, qptr1, coef1, normal1, weight1 = _one_pair(depth, False)
+    nq = qptr1[1]
+    # pair 1 the same points on vertices 0, 1, 2 (shared), 7, 8, 9, 10
+    verts = np.array([[0, 1, 2, 3, 4, 5, 6], [0, 1, 2, 7, 8, 9, 10]], dtype=np.int32)
+    xv = np.vstack((x0, x0[3:] + 0.01))
+    xref = xv[verts]
+    qptr = np.array([0, nq, 2 * nq], dtype=np.int32)
+    coef, normal = np.vstack((coef1, coef1)), np.vstack((normal1, normal1))
+    weight = np.concatenate((weight1, 0.5 * weight1))
+    x = xv + 0.03 * rng.standard_normal(xv.shape)  # slips on both branches at tol 0.02
+    tol = 0.02
+    bc = np.zeros(3 * 11, dtype=bool)
+    bc[3 * 4 + 1] = True  # vertex 4's y dof
+    _, _, hess = friction_pairs(x, verts, xref, qptr, coef, normal, weight, tol, True, True)
+    dense = np.zeros((33, 33))
+    for p in range(2):
+        dofs = (3 * verts[p][:, None] + np.arange(3)).ravel()
+        dense[np.ix_(dofs, dofs)] += hess[p]
+    dense[bc, :] = dense[:, bc] = 0.0
+    # the pattern: every coupling of the two pairs except (5, 6), which is left out
+    pairs_vv = sorted({(a, b) for v in verts for a in v for b in v} - {(5, 6)})
+    index = {ab: k for k, ab in enumerate(pairs_vv)}
+    slot = np.array([[[index.get((a, b), -1) for b in v] for a in v] for v in verts])
+    blocks = np.zeros((len(pairs_vv), 3, 3))
+    friction_blocks(x, verts, xref, qptr, coef, normal, weight, tol, slot, bc, blocks)
+    assert np.abs(dense[15:18, 18:21]).max() > 0.0
+    dense[15:18, 18:21] = 0.0  # the coupling (5, 6) outside the pattern
+    summed = np.zeros((33, 33))
+    for (a, b), k in index.items():
+        summed[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] = blocks[k]
+    assert np.abs(summed - dense).max() <= 1e-13 * np.abs(dense).max()
 
 
 # -- the operator: residual and Jacobian of the friction potential -----------------------------

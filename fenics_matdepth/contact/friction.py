@@ -25,6 +25,7 @@ from fenics_matdepth.contact import assembly
 from fenics_matdepth.contact.fields import contact_fields
 from fenics_matdepth.contact.kernels.friction import (
     empty_reference,
+    friction_blocks,
     friction_pairs,
     friction_points,
     friction_reference,
@@ -381,16 +382,23 @@ class FrictionMixin:
         dofs, vals = assembly.gradient_array(self.surface, r["verts"], r["grad"])
         b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
 
-    def _friction_positions(self) -> tuple[np.ndarray, bool]:
+    def _friction_positions(self) -> tuple[np.ndarray, bool, np.ndarray]:
         """Where the friction pairs' couplings lie in the pattern, and whether one lies outside
-        it on some rank (collective), kept until the next update."""
+        it on some rank (collective), kept until the next update; and the friction's own
+        blocks: ``(slot, outside, reached)``, ``reached`` the sorted pattern indices the pairs
+        reach and ``slot`` (np, 7, 7) each coupling's row in it (-1 outside the pattern)."""
         if "friction_positions" not in self._cache:
-            verts = self._friction_pass(False)["verts"]
+            verts = self._friction_held_data()["verts"]
             pos, missing = assembly.coupling_positions(
                 self.surface, self._pattern_in_held_numbering(), verts, self._pattern_transposed()
             )
             outside = bool(self.comm.allreduce(missing > 0, op=MPI.LOR))
-            self._cache["friction_positions"] = (pos, outside)
+            # the friction's blocks only (a few per pair), not a buffer of the whole pattern
+            inside = pos >= 0
+            reached, index = np.unique(pos[inside], return_inverse=True)
+            slot = np.full(pos.shape, -1, dtype=INDEX)
+            slot[inside] = index
+            self._cache["friction_positions"] = (slot, outside, reached)
         return self._cache["friction_positions"]
 
     def _friction_outside_pattern(self) -> bool:
@@ -402,10 +410,17 @@ class FrictionMixin:
         left out."""
         if self._friction_ref is None:
             return
-        pos, _ = self._friction_positions()
-        r = self._friction_pass(True)
-        keys = self._pattern_in_held_numbering()
-        assembly.add_jacobian_blocks(A, self.surface, keys, pos, r["verts"], r["hess"])
+        slot, _, reached = self._friction_positions()
+        d = self._friction_held_data()
+        blocks = np.zeros((reached.size, 3, 3), dtype=FLOAT)
+        # summed per point straight into the blocks: no (np, 21, 21) pair Hessians
+        friction_blocks(
+            self.surface.x, d["verts"], d["xref"], d["qptr"], d["coef"], d["normal"],
+            d["weight"], self.slip_tol, slot, self.surface.bc, blocks,
+        )  # fmt: skip
+        keys = self._pattern_in_held_numbering()[reached]
+        touched = np.ones(reached.size, dtype=bool)
+        assembly.insert_blocks(A, self.surface, keys, blocks, touched)
 
     def _with_friction_keys(self, keys: np.ndarray) -> np.ndarray:
         """The pattern keys ``keys`` with the friction pairs' couplings (global numbering),

@@ -37,7 +37,13 @@ from fenics_matdepth.contact.kernels.polygon import gather_triangle, polygon_wor
 from fenics_matdepth.contact.kernels.split import gather_tet, is_split
 from fenics_matdepth.geometry.clip import tet_gradients
 
-__all__ = ["empty_reference", "friction_pairs", "friction_points", "friction_reference"]
+__all__ = [
+    "empty_reference",
+    "friction_blocks",
+    "friction_pairs",
+    "friction_points",
+    "friction_reference",
+]
 
 #: below this length of ``grad g_K`` (dimensionless) a (sub-)tetrahedron has no depth
 #: direction, so no normal force and no friction
@@ -186,6 +192,19 @@ def _mollified(y, e):
     return y - e / 3.0, 1.0, 1.0 / y
 
 
+@njit(cache=True, fastmath=FMA, inline="always")
+def _slip_hessian(y, s, c, e, normal, q, m):
+    """``m`` (3, 3) = d2/ds2 of ``c f0(|P s|)``: ``c [f1/y P + (f1' - f1/y) s s^T / y^2]``."""
+    _, _, f1y = _mollified(y, e)
+    beta = 0.0
+    if y > 0.0:
+        beta = -1.0 / (y * e * e) if y < e else -1.0 / (y * y * y)
+    for r in range(3):
+        for t in range(3):
+            pr = (1.0 if r == t else 0.0) - normal[q, r] * normal[q, t]
+            m[r, t] = c * (f1y * pr + beta * s[r] * s[t])
+
+
 @njit(cache=True, fastmath=FMA)
 def friction_pairs(x, verts, xref, qptr, coef, normal, weight, slip_tol, want_grad, want_hess):
     """The friction potential of each pair and, on request, its gradient and Hessian over the
@@ -225,14 +244,7 @@ def friction_pairs(x, verts, xref, qptr, coef, normal, weight, slip_tol, want_gr
                     grad[p, 3 * a + r] += ca * s[r]
             if not want_hess:
                 continue
-            # d2/ds2 of c f0(|P s|): c [f1/y P + (f1' - f1/y) s s^T / y^2]
-            beta = 0.0
-            if y > 0.0:
-                beta = -1.0 / (y * e * e) if y < e else -1.0 / (y * y * y)
-            for r in range(3):
-                for t in range(3):
-                    pr = (1.0 if r == t else 0.0) - normal[q, r] * normal[q, t]
-                    m[r, t] = c * (f1y * pr + beta * s[r] * s[t])
+            _slip_hessian(y, s, c, e, normal, q, m)
             for a in range(7):
                 for b in range(7):
                     cab = coef[q, a] * coef[q, b]
@@ -240,6 +252,42 @@ def friction_pairs(x, verts, xref, qptr, coef, normal, weight, slip_tol, want_gr
                         for t in range(3):
                             hess[p, 3 * a + r, 3 * b + t] += cab * m[r, t]
     return energy, grad, hess
+
+
+@njit(cache=True, fastmath=FMA)
+def friction_blocks(
+    x, verts, xref, qptr, coef, normal, weight, slip_tol, slot, bc_mask, blocks
+):  # fmt: skip
+    """The friction potential's Hessian summed into 3 x 3 vertex-coupling blocks (the pair
+    Hessians of `friction_pairs` without forming them: each point adds
+    ``coef[a] coef[b] m_q`` to the block of vertices (a, b), ``m_q`` its 3 x 3 slip Hessian).
+
+    Args:
+        x, verts, xref, qptr, coef, normal, weight, slip_tol: as `friction_pairs`.
+        slot: (np, 7, 7) the block of each pair coupling (-1: left out).
+        bc_mask: (3 nv,) True on Dirichlet dofs, whose rows and columns are left out.
+        blocks: (nb, 3, 3) output, added to (zero it first).
+    """
+    s = np.empty(3, dtype=FLOAT)
+    m = np.empty((3, 3), dtype=FLOAT)
+    for p in range(verts.shape[0]):
+        for q in range(qptr[p], qptr[p + 1]):
+            y = _slip(x, verts, xref, coef, normal, p, q, s)
+            _slip_hessian(y, s, weight[q], slip_tol, normal, q, m)
+            for a in range(7):
+                va = verts[p, a]
+                for b in range(7):
+                    k = slot[p, a, b]
+                    if k < 0:
+                        continue
+                    vb = verts[p, b]
+                    cab = coef[q, a] * coef[q, b]
+                    for r in range(3):
+                        if bc_mask[3 * va + r]:
+                            continue
+                        for t in range(3):
+                            if not bc_mask[3 * vb + t]:
+                                blocks[k, r, t] += cab * m[r, t]
 
 
 @njit(cache=True, fastmath=FMA)
