@@ -1107,6 +1107,7 @@ summary = {
     "mesh": stats,
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
+    "fibre_toe": fibre_toe,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "max_newton_iterations": max_newton,
