@@ -50,6 +50,8 @@
 # `MATDEPTH_KNEE_PREDICTOR` the step predictor (`0`, the default: none; `extrapolate` or
 # `rotation`; below),
 # `MATDEPTH_KNEE_BULK_RATIO` sets the soft tissues' bulk-to-shear modulus ratio (default 50),
+# `MATDEPTH_KNEE_FIBRE_TOE` the width in I4 of the tendon's toe region (default 0.04; 0: fibres
+# that switch on at their slack length; below),
 # `MATDEPTH_KNEE_MAX_IT` the Newton iterations before a step is cut (default 100),
 # `MATDEPTH_KNEE_TARGET_IT` the step control's target Newton iterations per step (default 0:
 # off, steps halve only after a failure and double back after it; 10 is FEBio's choice;
@@ -118,6 +120,7 @@ max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 100))
 target_iterations = int(os.environ.get("MATDEPTH_KNEE_TARGET_IT", 0))
 stop_iterations = int(os.environ.get("MATDEPTH_KNEE_STOP_IT", 3 * target_iterations))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
+fibre_toe = float(os.environ.get("MATDEPTH_KNEE_FIBRE_TOE", 0.04))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
@@ -229,7 +232,11 @@ depth.name = "material_depth"
 #   dominated by subcutaneous fat (mu of a few kPa), stiffening at large stretch (the dermis).
 # - quadriceps tendon, patellar ligament: fibre-reinforced, matrix mu = 0.5, kappa = 5, fibres
 #   k1 = 100 (fibre modulus 4 k1 = 400 MPa) along the tendon's axis: tendon has a modulus of
-#   several hundred MPa along its fibres and is soft across them.
+#   several hundred MPa along its fibres and is soft across them. The fibres stiffen over a toe
+#   region, I4 from 1 to 1.04 (about 2 % strain, where tendon's crimped collagen straightens):
+#   fibres that switch on at their slack length make the energy only once differentiable
+#   there, and hundreds of the tendon's cells crossing it in each Newton iteration kept
+#   Newton's method from converging quadratically (docs/measurements.md).
 #
 # The fibre direction $\mathbf{a}_0$ is a piecewise-constant field: along $z$ in the quadriceps
 # tendon, from the patella to the tibial tuberosity in the patellar ligament.
@@ -238,7 +245,7 @@ depth.name = "material_depth"
 bone = {"mu": 40.0, "kappa": 90.0}
 muscle = {"c10": 5e-3, "c01": 2.5e-3, "kappa": 0.015 * bulk_ratio}
 skin_fat = {"c1": 2.5e-3, "c2": 4.0, "kappa": 0.01 * bulk_ratio}
-tendon = {"mu": 0.5, "kappa": 5.0, "k1": 100.0}
+tendon = {"mu": 0.5, "kappa": 5.0, "k1": 100.0, "toe": fibre_toe}
 
 u = fem.Function(V, name="displacement")
 F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
@@ -1100,6 +1107,7 @@ summary = {
     "mesh": stats,
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
+    "fibre_toe": fibre_toe,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "max_newton_iterations": max_newton,

@@ -179,6 +179,7 @@ def fiber_reinforced(
     a0: Expr,
     k1: Scalar,
     k2: Scalar = 0.0,
+    toe: float = 0.0,
 ) -> Expr:
     """Transversely isotropic fiber-reinforced energy: neo-Hookean matrix + tension-only fibers.
 
@@ -193,6 +194,19 @@ def fiber_reinforced(
     ``I4`` is built from the full ``C`` (not the isochoric one), so that fiber stretch, and not
     only fiber distortion, is penalised.
 
+    With ``toe = d > 0`` (and ``k2 = 0``) the fibers stiffen over a toe region instead of
+    switching on at ``I4 = 1``, as tendon does while its crimped collagen straightens (the
+    first 2 to 4 % of strain): with ``s = I4 - 1``,
+
+        psi_f = k1 s^3 / (6 d)                   for 0 < s <= d,
+        psi_f = k1 / 2 (s - d / 2)^2 + k1 d^2 / 24   for s > d,
+
+    so the fiber's second derivative ``d2 psi_f / ds2`` rises linearly from 0 to ``k1`` over
+    the toe and the energy is twice continuously differentiable. Without it (``toe = 0``) the
+    second derivative jumps from 0 to ``k1`` at ``I4 = 1``: Newton's method converges only
+    linearly while fibers cross the slack length (measured on the knee demo's tendon,
+    docs/measurements.md).
+
     Args:
         F: Deformation gradient (3 x 3, or 2 x 2 for plane strain).
         mu: Shear modulus of the matrix (Pa).
@@ -203,6 +217,9 @@ def fiber_reinforced(
         k1: Fiber stiffness (Pa). At small fiber tension the fiber adds ``4 k1`` to the
             uniaxial tangent modulus along ``a0``.
         k2: Fiber stiffening coefficient (dimensionless, >= 0).
+        toe: Width ``d`` of the toe region in ``I4`` (dimensionless, >= 0; about twice the
+            toe's strain): 0 for fibers that switch on at their slack length. Only with
+            ``k2 = 0``.
 
     Returns:
         Strain energy per unit reference volume (Pa).
@@ -212,11 +229,22 @@ def fiber_reinforced(
         raise ValueError(f"a0 must be a vector of size {F.ufl_shape[0]}, got {a0.ufl_shape}")
     I4 = ufl.dot(a0, C * a0)
     stretch = I4 - 1
-    if isinstance(k2, int | float) and k2 == 0:
+    quadratic = isinstance(k2, int | float) and k2 == 0
+    if not (isinstance(toe, int | float) and toe >= 0.0):
+        raise ValueError(f"toe must be a number >= 0, got {toe!r}")
+    if toe > 0.0 and not quadratic:
+        raise ValueError(
+            f"the toe region is defined for the quadratic fiber term only (k2 = 0), got k2={k2}"
+        )
+    if quadratic:
         fiber = k1 / 2 * stretch**2
     else:
         fiber = k1 / (2 * k2) * (ufl.exp(k2 * stretch**2) - 1)
     matrix = mu / 2 * (I1_bar - 3) + volumetric_energy(J, kappa)
+    if toe > 0.0:
+        past = k1 / 2 * (stretch - toe / 2) ** 2 + k1 * toe**2 / 24
+        within = k1 * stretch**3 / (6 * toe)
+        fiber = ufl.conditional(ufl.gt(stretch, toe), past, within)
     return matrix + ufl.conditional(ufl.gt(I4, 1), fiber, 0)
 
 

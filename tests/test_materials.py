@@ -263,6 +263,64 @@ def test_fiber_term_in_tension(evaluator):
     assert abs(difference - fiber) < 1e-13 * fiber
 
 
+TOE = 0.05
+
+
+@functools.cache
+def _compiled_toe(evaluator: ConstantF, toe: float, what: str):
+    """The fiber part (fiber_reinforced minus its neo-Hookean matrix; k2 = 0) of psi, or of
+    the tangent's a0 a0 a0 a0 component, with a toe region of width ``toe``."""
+    F = ufl.variable(evaluator.F)
+    p = {"mu": MU, "kappa": KAPPA, "k1": K1}
+    psi = materials.fiber_reinforced(F, a0=evaluator.a0, toe=toe, **p)
+    psi = psi - materials.neo_hookean(F, MU, KAPPA)
+    if what == "psi":
+        return evaluator.compile(psi)
+    return evaluator.compile(ufl.diff(ufl.diff(psi, F), F)[0, 0, 0, 0])
+
+
+def _fiber_toe_reference(s: float, toe: float) -> tuple[float, float, float]:
+    """psi_f and its first two derivatives in s = I4 - 1 (the toe region as documented)."""
+    if s <= 0.0:
+        return 0.0, 0.0, 0.0
+    if s <= toe:
+        return K1 * s**3 / (6 * toe), K1 * s**2 / (2 * toe), K1 * s / toe
+    return K1 / 2 * (s - toe / 2) ** 2 + K1 * toe**2 / 24, K1 * (s - toe / 2), K1
+
+
+@pytest.mark.parametrize("s", [-0.02, 0.01, 0.03, 0.05, 0.2])
+def test_fiber_toe_region_energy_and_tangent(evaluator, s):
+    """Along F = diag(l, 1, 1) (I4 = l^2, s = I4 - 1) the fiber energy is the documented
+    piecewise cubic / quadratic, and the a0 a0 a0 a0 tangent 4 l^2 psi_f'' + 2 psi_f'."""
+    stretch = np.sqrt(1.0 + s)
+    F = np.diag([stretch, 1.0, 1.0])
+    psi, dpsi, d2psi = _fiber_toe_reference(s, TOE)
+    assert abs(_compiled_toe(evaluator, TOE, "psi")(F) - psi) <= 1e-13 * (abs(psi) + K1 * TOE**2)
+    tangent = 4 * stretch**2 * d2psi + 2 * dpsi
+    assert abs(_compiled_toe(evaluator, TOE, "A")(F) - tangent) <= 1e-11 * K1
+
+
+@pytest.mark.parametrize("at", [0.0, TOE])
+def test_fiber_toe_region_tangent_is_continuous(evaluator, at):
+    """The fiber tangent is continuous across I4 = 1 and the toe's end with a toe region (it
+    changes by O(t) over +-t), and jumps by 4 k1 at I4 = 1 without one."""
+    t = 1e-9
+
+    def tangent(toe, s):
+        return float(_compiled_toe(evaluator, toe, "A")(np.diag([np.sqrt(1.0 + s), 1, 1])))
+
+    assert abs(tangent(TOE, at + t) - tangent(TOE, at - t)) < 1e-6 * K1
+    if at == 0.0:
+        assert tangent(0.0, t) - tangent(0.0, -t) == pytest.approx(4 * K1, rel=1e-6)
+
+
+def test_fiber_toe_region_rejects_bad_input(evaluator):
+    with pytest.raises(ValueError, match="k2 = 0"):
+        materials.fiber_reinforced(evaluator.F, MU, KAPPA, evaluator.a0, K1, k2=1.0, toe=0.1)
+    with pytest.raises(ValueError, match="toe must be a number >= 0"):
+        materials.fiber_reinforced(evaluator.F, MU, KAPPA, evaluator.a0, K1, toe=-0.1)
+
+
 def test_plane_strain_equals_3d_with_unit_out_of_plane_stretch(evaluator):
     F2 = np.array([[1.2, 0.3], [-0.1, 0.9]])
     F3 = np.eye(3)
