@@ -284,6 +284,9 @@ class Run:
             energy=energy,
             petsc_options_prefix=f"concave_corner_{integration}_",
             petsc_options=solver_options,
+            # MATDEPTH_CORNER_CCD=0: without the collision detection of the Newton steps (to
+            # measure what it costs here)
+            ccd=os.environ.get("MATDEPTH_CORNER_CCD", "1") not in ("", "0"),
         )
         self.step_lengths: list[float] = []
         self.problem.snes.setMonitor(self._monitor)

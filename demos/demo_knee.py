@@ -431,6 +431,9 @@ problem = fm.ContactProblem(
     # about 10 N several times as faces entered the contact (with their carried pressures), and
     # with 50 the steps were cut to 0.1 deg and less; with 100 they converged
     petsc_options={"snes_max_it": max_newton, "snes_atol": 1e-8},
+    # MATDEPTH_KNEE_CCD=0: without the collision detection of the Newton steps (to measure
+    # what it costs here)
+    ccd=os.environ.get("MATDEPTH_KNEE_CCD", "1") not in ("", "0"),
 )
 # -
 
