@@ -813,12 +813,15 @@ def test_line_search_start_merit_is_not_evaluated_again():
     assert len(points["residual"]) == result.iterations + 1
 
 
-def test_residual_lifts_the_contact_coupling_to_prescribed_values():
+@pytest.mark.parametrize("friction", [False, True], ids=["frictionless", "friction"])
+def test_residual_lifts_the_contact_coupling_to_prescribed_values(friction):
     """With Dirichlet values not yet reached, the residual holds the contact Hessian's share of
     the lifting, as apply_lifting adds the bulk's: at x with the indenter's prescribed
     displacement raised by eps d, its free rows equal, to O(eps^2), the residual at x with the
     indenter moved there (no lifting needed), so the Newton step with the Dirichlet columns
-    zeroed is exact. Without the contact share the difference is O(eps)."""
+    zeroed is exact. Without the contact share the difference is O(eps). With friction the
+    indenter is also moved sideways from the friction's reference (the pressed state), and the
+    friction Hessian's share is checked to be needed for the second order."""
     comm = MPI.COMM_WORLD
     mesh, V, u, residual, energy = _stacked_blocks(comm)
     tdim = mesh.topology.dim
@@ -833,46 +836,61 @@ def test_residual_lifts_the_contact_coupling_to_prescribed_values():
         ),
         dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, tdim, upper)),
     ]
-    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    law = fm.Coulomb(0.5) if friction else None
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0, friction=law)
     problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
     g.x.array.reshape(-1, 3)[:, 2] = -0.01
     assert problem.solve().converged
     assert contact.diagnostics()["active_pairs"] > 0
+    contact.advance()  # the friction's reference: the pressed state (nothing without friction)
+    # with friction the indenter moves only sideways (its slip a fifth of the slip tolerance at
+    # eps = 1e-2), so that the friction's share is most of the lifting
+    side = 0.2 * contact.slip_tol if friction else 0.0
+    down = 0.0 if friction else 0.01
     assembler = problem.assembler
     x = u.x.petsc_vec.copy()
     free = ~np.isin(np.arange(x.getLocalSize()), assembly.owned_dirichlet_dofs(bcs))
     lifted, moved = x.duplicate(), x.duplicate()
 
-    def differences(eps: float) -> tuple[float, float]:
-        g.x.array.reshape(-1, 3)[:, 2] = -0.01 * (1.0 + eps)
+    def differences(eps: float) -> tuple[float, float, float]:
+        g.x.array.reshape(-1, 3)[:, 2] = -0.01 - down * eps
+        g.x.array.reshape(-1, 3)[:, 0] = side * eps * 100.0
         # at x, the indenter not yet moved: lifted residual, and its contact share
         assembler.set_state(x)
         assert assembler.residual(x, lifted)
         increment = assembler._dirichlet_increment(x)
-        share = x.duplicate()
+        share, friction_share = x.duplicate(), x.duplicate()
         share.zeroEntries()
         contact.add_lifting(share, increment)
+        friction_share.zeroEntries()
+        contact._add_friction_lifting(friction_share, increment)
+        friction_share.assemble()
         # the indenter moved onto its values
         y = x.copy()
         dolfinx.fem.petsc.set_bc(y, bcs)
         assembler.set_state(y)
         assert assembler.residual(y, moved)
-        diff = (lifted.getArray() - moved.getArray())[free]
-        out = (
-            np.sqrt(comm.allreduce(float(diff @ diff))),
-            np.sqrt(comm.allreduce(float(share.getArray()[free] @ share.getArray()[free]))),
-        )
-        for vec in (share, y):
+        out = tuple(
+            np.sqrt(comm.allreduce(float(a[free] @ a[free])))
+            for a in (lifted.getArray() - moved.getArray(), share.getArray(),
+                      friction_share.getArray())
+        )  # fmt: skip
+        for vec in (share, friction_share, y):
             vec.destroy()
         return out
 
-    coarse, _ = differences(1e-2)
-    fine, share_fine = differences(1e-3)
+    coarse, _, _ = differences(1e-2)
+    fine, share_fine, friction_fine = differences(1e-3)
     assert share_fine > 0.0
     # second order: ten times smaller a step, about a hundred times smaller a difference;
     # without the contact share the difference would be of the share's size (first order)
     assert fine <= 0.03 * coarse, (coarse, fine)
     assert fine <= 0.05 * share_fine, (fine, share_fine)
+    if friction:
+        # without the friction's share the difference would be of its size
+        assert fine <= 0.05 * friction_fine, (coarse, fine, share_fine, friction_fine)
+    else:
+        assert friction_fine == 0.0
     for vec in (x, lifted, moved):
         vec.destroy()
 

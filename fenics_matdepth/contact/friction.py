@@ -382,6 +382,18 @@ class FrictionMixin:
         dofs, vals = assembly.gradient_array(self.surface, r["verts"], r["grad"])
         b.setValues(dofs.astype(PETSc.IntType), vals, addv=PETSc.InsertMode.ADD_VALUES)
 
+    def _add_friction_lifting(self, b: PETSc.Vec, offset: np.ndarray) -> None:
+        """``b += H_f[:, D] offset[D]``: the friction Hessian's share of the lifting, as
+        ``add_lifting`` adds the normal contact's (collective; nothing without friction). The
+        pair Hessians are evaluated only when a Dirichlet dof of a friction pair is not yet on
+        its value (the first Newton iteration of a step that moves a body)."""
+        if self._friction_ref is None:
+            return
+        assembly.add_lifting_pairs(
+            self.surface, b, offset, lambda: self._friction_held_data()["verts"],
+            lambda sel: self._friction_pass(True)["hess"][sel],
+        )  # fmt: skip
+
     def _friction_positions(self) -> tuple[np.ndarray, bool, np.ndarray]:
         """Where the friction pairs' couplings lie in the pattern, and whether one lies outside
         it on some rank (collective), kept until the next update; and the friction's own

@@ -337,9 +337,10 @@ class ContactOperator(FrictionMixin):
         ``apply_lifting(b, [a], [bcs], x0=[x], alpha=-1)`` adds ``A[:, D] (g - x)[D]`` to the
         residual, which makes the Newton step with the Dirichlet columns of the Jacobian zeroed
         the exact Newton step towards the prescribed values ``g``; this adds the contact
-        Hessian's share of that term, from the pairs that have a Dirichlet dof whose value is
-        not yet reached (a body moved by prescribed displacements into contact; only their
-        Hessians are evaluated). Rows of Dirichlet dofs are left out (``set_bc`` writes them).
+        Hessian's share of that term (the friction's too), from the pairs that have a Dirichlet
+        dof whose value is not yet reached (a body moved by prescribed displacements into
+        contact; only their Hessians are evaluated). Rows of Dirichlet dofs are left out
+        (``set_bc`` writes them).
 
         Args:
             b: the residual vector (before ``set_bc``).
@@ -350,6 +351,7 @@ class ContactOperator(FrictionMixin):
             self.surface, b, offset, self._pair_verts,
             lambda sel: self._kernel_pass(sel, True, True)[2],
         )  # fmt: skip
+        self._add_friction_lifting(b, offset)
 
     def set_bcs(self, bcs: typing.Sequence[dolfinx.fem.DirichletBC]) -> None:
         """Remember the Dirichlet dofs, whose Jacobian rows and columns stay out (collective)."""
