@@ -416,7 +416,15 @@ def set_flexion(t: float) -> None:
 
 # +
 penalty = float(os.environ.get("MATDEPTH_KNEE_PENALTY", 2.0))  # MPa/mm
-contact = fm.ContactOperator(u, depth, penalty)
+# MATDEPTH_KNEE_FRICTION=1: Coulomb friction by pair of cell tags (docs/friction.md), cartilage
+# on cartilage (bone on bone: femur, patella, tibia) mu = 0.01, skin on skin mu = 0.5, the rest
+# (soft tissue sliding on bone) frictionless
+knee_friction = None
+if os.environ.get("MATDEPTH_KNEE_FRICTION", "0") not in ("", "0"):
+    bones = (leg.FEMUR, leg.PATELLA, leg.TIBIA)
+    knee_mu = {(a, b): 0.01 for a in bones for b in bones} | {(leg.SKIN, leg.SKIN): 0.5}
+    knee_friction = fm.Coulomb(knee_mu, cell_tags=cell_tags)
+contact = fm.ContactOperator(u, depth, penalty, friction=knee_friction)
 problem = fm.ContactProblem(
     residual,
     u,
@@ -619,6 +627,11 @@ def measure(t: float) -> dict:
         "patella_rotation_degrees": rotation,
         "patella_contact_force": force.tolist(),
         "fold_skin_vertices_in_contact": fold_contacts,
+        "friction": {
+            k: float(diag[k])
+            for k in ("friction_dissipation", "stick_points", "slip_points", "max_traction_ratio")
+            if k in diag
+        },
     }
 
 
@@ -850,6 +863,13 @@ def after_step(t: float) -> None:
         + (
             f", {m['pressure_updates']} pressure updates, max pressure {m['max_pressure']:.3f} MPa"
             if augmented is not None
+            else ""
+        )
+        + (
+            f", friction: {m['friction']['stick_points']:.0f} stick / "
+            f"{m['friction']['slip_points']:.0f} slip points, dissipated "
+            f"{m['friction']['friction_dissipation']:.3g} N mm"
+            if m["friction"]
             else ""
         )
         + f"; deepest {m['deepest_contact']}"

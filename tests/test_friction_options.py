@@ -20,7 +20,7 @@ from fenics_matdepth.meshing import box_tetrahedra
 
 # -- mu by cell tag ----------------------------------------------------------------------------
 
-LOWER, UPPER = 7, 9
+LOWER, UPPER, SIDE = 7, 9, 11
 
 
 def _two_boxes_tagged(comm: MPI.Comm):
@@ -54,8 +54,7 @@ def _sliding_dissipation(V: dolfinx.fem.FunctionSpace, law: fm.Coulomb) -> float
 def test_mu_by_cell_tag():
     """``Coulomb({(tag_a, tag_b): mu}, cell_tags=tags)`` gives the pair of bodies whose cells
     carry those tags that coefficient (the dissipation of a slide, proportional to mu, equal
-    to that of ``Coulomb(mu)`` to rounding), ``default`` the pairs it does not name, and
-    names a body whose cells carry two tags."""
+    to that of ``Coulomb(mu)`` to rounding), and ``default`` the pairs it does not name."""
     V, tags = _two_boxes_tagged(MPI.COMM_WORLD)
     reference = _sliding_dissipation(V, fm.Coulomb(0.4, slip_tol=0.002))
     assert reference > 0.0
@@ -64,14 +63,6 @@ def test_mu_by_cell_tag():
     # the pair (LOWER, UPPER) not named: the default, a quarter of 0.4
     other = fm.Coulomb({(LOWER, LOWER): 0.4}, slip_tol=0.002, cell_tags=tags, default=0.1)
     assert _sliding_dissipation(V, other) == pytest.approx(0.25 * reference, rel=1e-12)
-    # one cell of the upper box tagged LOWER: that body carries two tags
-    values = tags.values.copy()
-    values[np.flatnonzero(values == UPPER)[:1]] = LOWER
-    mixed = dolfinx.mesh.meshtags(V.mesh, 3, tags.indices, values)
-    mixed_law = fm.Coulomb({(LOWER, UPPER): 0.4}, cell_tags=mixed)
-    if MPI.COMM_WORLD.size == 1:  # (on more ranks the tagged cell may be a ghost only)
-        with pytest.raises(ValueError, match="carry the tags 7, 9"):
-            _sliding_dissipation(V, mixed_law)
     with pytest.raises(ValueError, match="dict mu"):
         fm.Coulomb(0.3, cell_tags=tags)
     facets = dolfinx.mesh.meshtags(V.mesh, 0, np.zeros(0, dtype=np.int32), np.zeros(0, np.int32))
@@ -79,6 +70,42 @@ def test_mu_by_cell_tag():
         fm.Coulomb({(1, 2): 0.3}, cell_tags=facets)
     with pytest.raises(ValueError, match="updates must be"):
         fm.Coulomb(0.3, updates=-1)
+
+
+def test_mu_by_cell_tag_within_one_body():
+    """Regions of one body get their own coefficient: the lower box's cells are tagged LOWER
+    where their centroid has x < 0.5 and SIDE elsewhere (tags given on the owned cells only),
+    and a pair takes the coefficient of its triangle's cell's tag and its tetrahedron's tag.
+    The dissipation is linear in each pair's coefficient, so the two regions' parts add up to
+    the whole and mix by their coefficients; the upper box (x from 0.23 to 0.9, slid rigidly
+    along x) lies about two fifths over the LOWER half, and so is that region's share."""
+    V, tags = _two_boxes_tagged(MPI.COMM_WORLD)
+    mesh = V.mesh
+    n_owned = mesh.topology.index_map(3).size_local
+    x = mesh.geometry.x[mesh.geometry.dofmap[:n_owned]].mean(axis=1)
+    values = tags.values[:n_owned].copy()
+    values[(values == LOWER) & (x[:, 0] >= 0.5)] = SIDE
+    split = dolfinx.mesh.meshtags(mesh, 3, np.arange(n_owned, dtype=np.int32), values)
+    upper_dofs = np.unique(V.dofmap.list[tags.find(UPPER)])
+
+    def slide(law: fm.Coulomb) -> float:
+        u = dolfinx.fem.Function(V)
+        op = fm.ContactOperator(
+            u, fm.material_depth(mesh), penalty=50.0, friction=law,
+            allow_reference_overlap=True,  # the boxes overlap in the mesh on purpose
+        )  # fmt: skip
+        u.x.array.reshape(-1, 3)[upper_dofs, 0] = 0.01
+        op.update()
+        return op.friction_diagnostics()["friction_dissipation"]
+
+    whole = slide(fm.Coulomb(0.4, slip_tol=0.002))
+    lower = slide(fm.Coulomb({(UPPER, LOWER): 0.4}, slip_tol=0.002, cell_tags=split))
+    side = slide(fm.Coulomb({(UPPER, SIDE): 0.4}, slip_tol=0.002, cell_tags=split))
+    mixed = slide(fm.Coulomb({(UPPER, LOWER): 0.4, (SIDE, UPPER): 0.1}, 0.002, cell_tags=split))
+    assert lower > 0.0 and side > 0.0
+    assert lower + side == pytest.approx(whole, rel=1e-10)
+    assert mixed == pytest.approx(lower + 0.25 * side, rel=1e-10)
+    assert 0.3 < lower / whole < 0.5, lower / whole
 
 
 # -- fixed-point updates of the lagged quantities ----------------------------------------------

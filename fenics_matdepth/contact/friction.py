@@ -18,6 +18,7 @@ import typing
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import dolfinx.la
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
@@ -31,7 +32,7 @@ from fenics_matdepth.contact.kernels.friction import (
     friction_reference,
 )
 
-__all__ = ["Coulomb", "FrictionMixin", "body_tags", "solve_with_updates"]
+__all__ = ["Coulomb", "FrictionMixin", "local_cell_tags", "solve_with_updates"]
 
 _POINT_KEYS = ("coef", "normal", "weight", "area")
 
@@ -65,9 +66,9 @@ class Coulomb:
         default: the coefficient of the pairs of bodies a dict ``mu`` does not name.
         cell_tags: cell MeshTags of ``u``'s mesh: the keys of a dict ``mu`` are then pairs of
             cell tags instead of body indices, ``{(CARTILAGE, CARTILAGE): 0.01, (SKIN, SKIN):
-            0.5}``. Each body (connected component) must carry one tag on all its cells (a
-            body's tag names it; a body without tags gets ``default``); the operator checks
-            this and says which body breaks it.
+            0.5}``: a (boundary triangle, tetrahedron) pair gets the coefficient of the tag of
+            the triangle's cell and the tag of the tetrahedron, so regions of one body (skin
+            and bone glued in one mesh) can have their own; untagged cells get ``default``.
         updates: fixed-point updates of the lagged quantities within a step, as IPC's: after
             a converged Newton solve the normal pressures, contact normals and quadrature
             points are taken again at the solution (the slip still measured from the step's
@@ -125,67 +126,36 @@ class Coulomb:
             f"{tags}, updates={self.updates})"
         )
 
-    def pair_mu(
-        self, body_a: np.ndarray, body_b: np.ndarray, tag_of_body: np.ndarray | None = None
-    ) -> np.ndarray:
-        """The coefficient of each pair of bodies ``(body_a[i], body_b[i])``.
-
-        Args:
-            body_a, body_b: body indices.
-            tag_of_body: with ``cell_tags``, each body's tag (-1: untagged; see
-                :func:`~fenics_matdepth.contact.friction.body_tags`), which the keys of ``mu`` name.
-        """
-        body_a, body_b = np.asarray(body_a), np.asarray(body_b)
+    def pair_mu(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The coefficient of each pair ``(a[i], b[i])``: of body indices, or with
+        ``cell_tags`` of cell tags (-1: untagged, ``default``)."""
+        a, b = np.asarray(a), np.asarray(b)
         if not isinstance(self.mu, dict):
-            return np.full(body_a.shape, self.mu, dtype=FLOAT)
-        if self.cell_tags is not None:
-            if tag_of_body is None:
-                raise ValueError("mu by cell tag: pass each body's tag (tag_of_body)")
-            body_a, body_b = tag_of_body[body_a], tag_of_body[body_b]
-        out = np.full(body_a.shape, self.default, dtype=FLOAT)
-        lo, hi = np.minimum(body_a, body_b), np.maximum(body_a, body_b)
-        for (a, b), value in self.mu.items():
-            out[(lo == a) & (hi == b)] = value
+            return np.full(a.shape, self.mu, dtype=FLOAT)
+        out = np.full(a.shape, self.default, dtype=FLOAT)
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        for (ka, kb), value in self.mu.items():
+            out[(lo == ka) & (hi == kb)] = value
         return out
 
 
-def body_tags(V: typing.Any, cell_tags: typing.Any, body_of_vertex: np.ndarray) -> np.ndarray:
-    """The cell tag of each body (connected component; -1 where its cells carry none), checking
-    that each body carries one tag on all its cells (collective).
+def local_cell_tags(mesh: typing.Any, cell_tags: typing.Any) -> np.ndarray:
+    """The tag of every local cell, owned and ghost (-1 where none; collective: the owners'
+    tags are sent to the ghosts, so tags given on the owned cells only are enough).
 
     Args:
-        V: the P1 vector space of ``u``.
-        cell_tags: cell MeshTags of ``V``'s mesh.
-        body_of_vertex: the body of each global vertex (the operator's).
-
-    Raises:
-        ValueError: a body's cells carry two tags, or some of them none.
+        mesh: the mesh.
+        cell_tags: cell MeshTags of ``mesh``.
     """
-    mesh = V.mesh
-    imap = V.dofmap.index_map
-    n_local = imap.size_local + imap.num_ghosts
-    to_global = imap.local_to_global(np.arange(n_local, dtype=np.int32))
-    cells = np.asarray(V.dofmap.list).reshape(-1, 4)
-    n_cells = mesh.topology.index_map(3).size_local  # owned cells
-    body_of_cell = body_of_vertex[to_global[cells[:n_cells, 0]]]
-    tag = np.full(n_cells, -1, dtype=np.int64)
-    owned = np.asarray(cell_tags.indices) < n_cells
-    tag[np.asarray(cell_tags.indices)[owned]] = np.asarray(cell_tags.values)[owned]
-    seen = np.unique(np.column_stack((body_of_cell, tag)), axis=0)
-    seen = np.unique(np.vstack(mesh.comm.allgather(seen)).reshape(-1, 2), axis=0)
-    num_bodies = int(body_of_vertex.max()) + 1 if body_of_vertex.size else 0
-    out = np.full(num_bodies, -1, dtype=np.int64)
-    for body in range(num_bodies):
-        tags = seen[seen[:, 0] == body, 1]
-        if tags.size > 1:
-            listed = ", ".join("none" if t < 0 else str(t) for t in tags)
-            raise ValueError(
-                f"friction by cell tag: the cells of body {body} carry the tags {listed}; "
-                "each body needs one tag on all its cells (or give mu by body index)"
-            )
-        if tags.size:
-            out[body] = tags[0]
-    return out
+    imap = mesh.topology.index_map(3)
+    n_owned, n_local = imap.size_local, imap.size_local + imap.num_ghosts
+    indices, values = np.asarray(cell_tags.indices), np.asarray(cell_tags.values)
+    vec = dolfinx.la.vector(imap, 1, dtype=np.float64)
+    vec.array[:] = -1.0
+    owned = indices < n_owned
+    vec.array[indices[owned]] = values[owned]
+    vec.scatter_forward()
+    return np.rint(vec.array[:n_local]).astype(np.int64)
 
 
 class _Reference(typing.NamedTuple):
@@ -217,11 +187,12 @@ class FrictionMixin:
         self._friction_advanced: _Reference | None = None  # the lagged data of advance()
         self._friction_held: tuple[int, dict[str, np.ndarray]] | None = None
         self.slip_tol = 0.0
-        self.friction_body_tags: np.ndarray | None = None
+        self._friction_tri_tag: np.ndarray | None = None
         if friction is not None and friction.cell_tags is not None:
-            self.friction_body_tags = body_tags(
-                self.u.function_space, friction.cell_tags, self.surface.body_of_vertex
-            )
+            mesh = self.u.function_space.mesh
+            tags = local_cell_tags(mesh, friction.cell_tags)
+            self._friction_tri_tag = tags[self.surface.tri_cell]
+            self.surface.add_cell_field("tag", tags[: mesh.topology.index_map(3).size_local])
         if friction is not None:
             tol = friction.slip_tol
             self.slip_tol = float(
@@ -250,11 +221,11 @@ class FrictionMixin:
         verts = np.hstack((s.tri[pa], s.tets[pk]))
         glob = s.global_vertex[verts]
         scale = np.ones(pa.size, dtype=FLOAT)
-        if friction:
+        if friction and self._friction_tri_tag is not None:
+            scale = self.friction.pair_mu(self._friction_tri_tag[pa], s.tet_fields["tag"][pk])
+        elif friction:
             body = s.body_of_vertex
-            scale = self.friction.pair_mu(
-                body[glob[:, 0]], body[glob[:, 3]], self.friction_body_tags
-            )
+            scale = self.friction.pair_mu(body[glob[:, 0]], body[glob[:, 3]])
         stiffness = np.full(pa.size, self.penalty, dtype=FLOAT)
         offset = np.zeros((pa.size, 3), dtype=FLOAT)
         if self._pressure is not None:

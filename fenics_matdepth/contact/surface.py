@@ -41,6 +41,7 @@ from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth._mpi import allgather_rows
 from fenics_matdepth.boundary import (
     boundary_triangles,
+    face_table,
     owned_boundary_triangle_dofs,
     p1_dof_coordinates,
 )
@@ -101,6 +102,9 @@ class ContactSurface:
             into ``held_fields`` at every halo build (fields that change between builds go
             through :meth:`pull`).
         held_fields: the per-vertex fields of ``vertex_fields`` over the held vertices.
+        tri_cell: (num_tri,) the local cell of each boundary triangle.
+        tet_fields: per-tetrahedron fields over the held tetrahedra (rows of ``tets``), added
+            with :meth:`add_cell_field` and carried into the halo at every build.
         mean_edge: mean boundary edge length (L), 0 without boundary triangles.
         refreshes: number of halo builds so far.
     """
@@ -137,6 +141,7 @@ class ContactSurface:
         X_local = p1_dof_coordinates(V)
         self._owned_cells = owned_cells = cells[: mesh.topology.index_map(3).size_local]
         self.tri = owned_boundary_triangle_dofs(mesh, cells, X_local)
+        self.tri_cell = np.ascontiguousarray(face_table(mesh).exterior[:, 0], dtype=INDEX)
         self._local_exchange = VertexExchange(comm, self._ranges, self._local_to_global, n_owned)
 
         # Collocation: owned boundary vertices with weight = 1/3 of the adjacent boundary area
@@ -171,6 +176,9 @@ class ContactSurface:
             "body": body_local[:n_owned],
         }
         self._bc_owned = np.zeros((n_owned, 3), dtype=bool)
+        # per-owned-cell fields carried with the halo tetrahedra (see add_cell_field)
+        self._cell_fields: dict[str, np.ndarray] = {}
+        self.tet_fields: dict[str, np.ndarray] = {}
         self.refreshes = 0
         self._build_halo(X_local)  # at the reference configuration (the overlap check)
         self.x = self.X.copy()
@@ -269,6 +277,9 @@ class ContactSurface:
             comm, self._local_to_global[self._owned_cells[tet]], ask.astype(np.int32)
         )
         halo_aux, _ = alltoallv_rows(comm, self._aux_owned[tet], ask.astype(np.int32))
+        self._halo_route = (tet, ask.astype(np.int32))
+        for name in self._cell_fields:
+            self._pull_cell_field(name)
 
         # held vertices: the local ones, then the halo tetrahedra's other vertices
         new = np.setdiff1d(halo_tets.ravel(), self._local_to_global)
@@ -302,6 +313,30 @@ class ContactSurface:
         self._x_at_build = x_local[:n_owned].copy()
         self.x = np.empty((self.num_held, 3), dtype=FLOAT)
         self.tree: AABBTree | None = None
+
+    def add_cell_field(self, name: str, owned: np.ndarray) -> None:
+        """Carry a per-cell field of the owned cells to the held tetrahedra (collective):
+        ``tet_fields[name]`` holds it for every row of ``tets``, now and after every halo
+        build.
+
+        Args:
+            name: the field's key in ``tet_fields``.
+            owned: (num owned cells, ...) its values on the owned cells.
+        """
+        owned = np.ascontiguousarray(owned)
+        if owned.shape[0] != self._owned_cells.shape[0]:
+            raise ValueError(
+                f"cell field {name!r}: {owned.shape[0]} rows for "
+                f"{self._owned_cells.shape[0]} owned cells"
+            )
+        self._cell_fields[name] = owned
+        self._pull_cell_field(name)
+
+    def _pull_cell_field(self, name: str) -> None:
+        tet, ask = self._halo_route
+        owned = self._cell_fields[name]
+        halo, _ = alltoallv_rows(self.comm, owned[tet], ask)
+        self.tet_fields[name] = np.concatenate((owned, halo))
 
     # -- state ----------------------------------------------------------------------------
 
