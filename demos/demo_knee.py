@@ -770,6 +770,10 @@ start_degrees = per_step[-1]["degrees"] if per_step else 0.0
 vtx_name = f"knee_from_{start_degrees:.0f}.bp" if per_step else "knee.bp"
 vtx = io.VTXWriter(comm, output / vtx_name, [u, depth])
 vtx.write(start_degrees)
+# the contact fields of each converged step (pressure, penetration, traction, slip, status: see
+# docs/friction.md), for ParaView and pyvista
+contact_file = io.XDMFFile(comm, output / vtx_name.replace(".bp", "_contact.xdmf"), "w")
+contact_file.write_mesh(domain)
 
 
 def largest_residual(count: int = 5) -> list:
@@ -846,6 +850,8 @@ def after_step(t: float) -> None:
     if comm.rank == 0:
         steps_file.write_text(json.dumps(per_step))
     vtx.write(m["degrees"])
+    for field in contact.fields().values():  # before solve_load_steps' advance()
+        contact_file.write_function(field, m["degrees"])
     frames_angles.append(m["degrees"])
     grid = gathered_grid()
     if grid is not None:
@@ -909,6 +915,7 @@ except RuntimeError as err:  # the history stops at the last converged step: rep
     failure = str(err)
 solve_seconds = time.perf_counter() - tic
 vtx.close()
+contact_file.close()
 reached = per_step[-1]["degrees"] if per_step else 0.0
 report(f"reached {reached:.1f} of {total_degrees:g} deg in {solve_seconds:.1f} s")
 if failure is not None:
