@@ -195,16 +195,16 @@ def test_newmark_impacts_gain_no_energy_with_the_discrete_gradient(model):
 
 
 def test_max_energy_gain_retries_only_the_steps_that_gain():
-    """The coarse cubes corner-on with the discrete gradient, to t = 0.3: without a bound the
-    bulk's trapezoidal error raises the total energy by 2.2e-4 of the start in a step (0.295)
-    and loses up to 6.7e-4 in others. With ``max_energy_gain`` at 1e-4 of the start, no
-    accepted step above ``min_dt`` rises by more than that, while the larger losses stay
-    (a one-sided bound: ``max_energy_change`` would retry those too)."""
-    dt = 0.01
-    cubes = _Cubes(3, 0.1, 0.5, lambda u: fm.Newmark(u, dt, rho=RHO))
-    bound = 1e-4
+    """The coarse blocks face-on with the discrete gradient (1 each, dt = 0.05): without a
+    bound the bulk's trapezoidal error raises the total energy by 1.4e-2 of the start in a
+    step after they separate (t = 0.525) and loses 1.75e-2 in the first contact step. With
+    ``max_energy_gain`` at 1e-3 of the start no accepted step above ``min_dt`` rises by more
+    than that (5.7e-4 measured, 8 cuts), while the larger loss stays (a one-sided bound:
+    ``max_energy_change`` would retry it too)."""
+    dt, bound = 0.05, 1e-3
+    cubes = _Cubes(3, 0.0, 1.0, lambda u: fm.Newmark(u, dt, rho=RHO))
     history, energy, drift = cubes.run(
-        0.3, dt, contact_force="discrete_gradient",
+        0.6, dt, contact_force="discrete_gradient",
         max_energy_gain=bound * cubes.integrator.kinetic_energy(),
     )  # fmt: skip
     assert max(r.active_pairs for r in history) > 0
@@ -212,7 +212,7 @@ def test_max_energy_gain_retries_only_the_steps_that_gain():
     above_min = np.array([r.dt > dt / 2**10 for r in history[1:]])
     change = np.diff(energy)
     assert change[above_min].max() <= bound, change.max()
-    assert change.min() < -bound, change.min()
+    assert change.min() < -10 * bound, change.min()
     assert sum(r.cuts for r in history) > 0
     cubes.problem.destroy()
 
