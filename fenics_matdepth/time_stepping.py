@@ -296,8 +296,10 @@ def solve_time_steps(
             step's by more than this (F L); losses are accepted, and at ``min_dt`` the step is
             accepted anyway. The one-sided error control of an energy-conserving scheme
             through impacts: a step that does not resolve the bulk's nonlinearity gains or
-            loses, and only the gains are retried. Needs the integrator's ``rho`` and
-            ``strain_energy``.
+            loses, and only the gains are retried: with it (1e-4 of the model's energy) the
+            impacts of ``docs/dynamics.md`` ("Energy at impacts": corner-on cubes, face-on
+            blocks, ten bounces) never rose above their start, with either contact force.
+            Needs the integrator's ``rho`` and ``strain_energy``.
         grow_after: successful steps before dt doubles.
         predict: start each Newton solve from ``integrator.predict()`` (else from the last
             state).
