@@ -23,6 +23,7 @@ from mpi4py import MPI
 import dolfinx
 import numpy as np
 import ufl
+from bench_impact_energy_split import EnergySplit
 
 import fenics_matdepth as fm
 
@@ -49,7 +50,16 @@ def ball_over_plate(comm: MPI.Comm, size: float) -> dolfinx.mesh.Mesh:
     return mesh
 
 
-def run(mesh, scheme: str, dt: float, t_end: float, verbose: bool = False) -> dict:
+def run(
+    mesh,
+    scheme: str,
+    dt: float,
+    t_end: float,
+    verbose: bool = False,
+    split: bool = False,
+    max_energy_change: float | None = None,
+    max_energy_gain: float | None = None,
+) -> dict:
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     v = ufl.TestFunction(V)
@@ -65,11 +75,9 @@ def run(mesh, scheme: str, dt: float, t_end: float, verbose: bool = False) -> di
     ]
     contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=fm.propose_penalty(mesh, E))
     integrator = fm.Newmark(u, dt, rho=RHO)
-    residual = (
-        integrator.inertia(v)
-        + ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
-        - RHO * ufl.inner(g, v) * ufl.dx
-    )
+    elastic = ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
+    load = RHO * ufl.inner(g, v) * ufl.dx
+    residual = integrator.inertia(v) + elastic - load
     integrator.initial(None, None, residual=residual, contact=contact, bcs=bcs)
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs,
@@ -81,8 +89,27 @@ def run(mesh, scheme: str, dt: float, t_end: float, verbose: bool = False) -> di
     mass = mesh.comm.allreduce(dolfinx.fem.assemble_scalar(dolfinx.fem.form(in_ball * ufl.dx)))
     height_form = dolfinx.fem.form(in_ball * (X[2] + u[2]) * ufl.dx)
     heights = []
+    drop_energy = RHO * GRAVITY * DROP * mass  # the potential energy the drop releases
+    splitter = None
+    if split:
+        splitter = EnergySplit(problem, integrator, elastic, strain_energy, bcs, rho=RHO, load=load)
+    terms = []
 
     def on_step(record):
+        if splitter is not None and record is not None:
+            t = splitter.step()
+            t.update(step=record.step, t=record.t, dt=record.dt, cuts=record.cuts)
+            t.update(its=record.iterations)
+            terms.append(t)
+            e = drop_energy
+            print(
+                f"  step {record.step:4d} t {record.t:.4f} dt {record.dt:.2e} cuts "
+                f"{record.cuts:2d} its {record.iterations:2d} W {t['W1'] / e:.2e} "
+                f"E-E0 {(t['E'] - terms[0]['E'] + terms[0]['dE']) / e:+.5f} dE "
+                f"{t['dE'] / e:+.2e} = bulk {t['bulk'] / e:+.2e} contact "
+                f"{t['contact'] / e:+.2e} equilibrium {t['equilibrium'] / e:+.2e}",
+                flush=True,
+            )
         z = mesh.comm.allreduce(dolfinx.fem.assemble_scalar(height_form)) / mass
         heights.append(z - RADIUS)  # the centre of mass above the plate, minus the radius
         if verbose and len(heights) >= 3 and heights[-3] < heights[-2] >= heights[-1]:
@@ -94,12 +121,13 @@ def run(mesh, scheme: str, dt: float, t_end: float, verbose: bool = False) -> di
     history = fm.solve_time_steps(
         problem, integrator, t_end, dt, on_step=on_step, strain_energy=strain_energy,
         external_work=gravity_work, progress=False, contact_force=scheme,
+        max_energy_change=None if max_energy_change is None else max_energy_change * drop_energy,
+        max_energy_gain=None if max_energy_gain is None else max_energy_gain * drop_energy,
     )  # fmt: skip
     seconds = mesh.comm.allreduce(time.perf_counter() - tic, op=MPI.MAX)
     h = np.array(heights)
     apexes = [h[i] for i in range(1, h.size - 1) if h[i - 1] < h[i] >= h[i + 1]]
     energy = np.array([r.total_energy for r in history])
-    drop_energy = RHO * GRAVITY * DROP * mass  # the potential energy the drop releases
     its = np.array([r.iterations for r in history[1:]])
     problem.destroy()
     return {
@@ -110,7 +138,29 @@ def run(mesh, scheme: str, dt: float, t_end: float, verbose: bool = False) -> di
         "cuts": sum(r.cuts for r in history),
         "steps": len(history) - 1,
         "seconds": seconds,
+        "split": summarise(terms, drop_energy) if terms else "",
     }
+
+
+def summarise(terms: list[dict], scale: float) -> str:
+    """The split's sums over the steps with contact (contact energy at either end) and over
+    the flight, and the five steps that gained most, relative to ``scale``."""
+    lines = []
+    touching = np.array([t["W0"] > 0.0 or t["W1"] > 0.0 for t in terms])
+    for name, mask in (("contact steps", touching), ("flight steps", ~touching)):
+        sums = {k: sum(t[k] for t, m in zip(terms, mask, strict=True) if m) / scale
+                for k in ("dE", "bulk", "contact", "equilibrium")}  # fmt: skip
+        lines.append(
+            f"  {name} ({int(mask.sum())}): dE {sums['dE']:+.5f} = bulk {sums['bulk']:+.5f} "
+            f"contact {sums['contact']:+.2e} equilibrium {sums['equilibrium']:+.2e}"
+        )
+    for t in sorted(terms, key=lambda t: -t["dE"])[:5]:
+        lines.append(
+            f"  gain at step {t['step']} (t {t['t']:.3f}, dt {t['dt']:.2e}, W {t['W1'] / scale:.1e}"
+            f"): dE {t['dE'] / scale:+.2e} = bulk {t['bulk'] / scale:+.2e} contact "
+            f"{t['contact'] / scale:+.2e} equilibrium {t['equilibrium'] / scale:+.2e}"
+        )
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -120,6 +170,19 @@ def main() -> None:
     parser.add_argument("--size", type=float, default=0.08)
     parser.add_argument("--schemes", nargs="*", default=["endpoint", "midpoint"])
     parser.add_argument("--verbose", action="store_true", help="print each apex as it comes")
+    parser.add_argument(
+        "--split", action="store_true",
+        help="print each step's energy change split into bulk, contact and equilibrium "
+        "(bench_impact_energy_split.py; serial, average-acceleration Newmark)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--max-energy-change", type=float, default=None,
+        help="solve_time_steps' max_energy_change, as a fraction of the drop's energy",
+    )  # fmt: skip
+    parser.add_argument(
+        "--max-energy-gain", type=float, default=None,
+        help="solve_time_steps' max_energy_gain, as a fraction of the drop's energy",
+    )  # fmt: skip
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     mesh = ball_over_plate(comm, args.size)
@@ -127,7 +190,10 @@ def main() -> None:
     if comm.rank == 0:
         print(f"{comm.size} rank(s), {cells} tetrahedra, dt {args.dt}, t_end {args.t_end}")
     for scheme in args.schemes:
-        r = run(mesh, scheme, args.dt, args.t_end, args.verbose)
+        r = run(
+            mesh, scheme, args.dt, args.t_end, args.verbose, args.split, args.max_energy_change,
+            args.max_energy_gain,
+        )  # fmt: skip
         if comm.rank != 0:
             continue
         a = r["apexes"]
@@ -139,6 +205,8 @@ def main() -> None:
             f"{r['steps']}; {r['seconds']:.1f} s",
             flush=True,
         )
+        if r["split"]:
+            print(r["split"], flush=True)
 
 
 if __name__ == "__main__":

@@ -81,6 +81,112 @@ def bulk_discrete_gradient(integ, u, v, mu, kappa) -> ufl.Form:
     )
 
 
+class EnergySplit:
+    """A Newmark run's energy change per converged step, split into the bulk's, the contact's
+    and the equilibrium's terms (module docstring; serial). Call :meth:`step` from
+    ``solve_time_steps``'s ``on_step``.
+
+    Args:
+        problem: the ContactProblem (its assembler's contact term is the step's during a run).
+        integ: the average-acceleration Newmark integrator.
+        elastic: the internal force's form (the strain energy's derivative).
+        strain: the strain energy's form.
+        bcs: the Dirichlet conditions (their dofs are left out of the residuals).
+        rho: the density of the inertia term.
+        load: the linear form of a conservative load ``f_ext . v`` (e.g. gravity), whose work
+            ``f_ext . u`` the total energy subtracts, or None.
+    """
+
+    def __init__(self, problem, integ, elastic, strain, bcs, rho: float, load=None):
+        self.problem, self.integ, self.contact = problem, integ, problem.contact
+        self.u = u = integ.u
+        V = u.function_space
+        self.acceleration = dolfinx.fem.Function(V)
+        v = ufl.TestFunction(V)
+        self.mass_form = dolfinx.fem.form(rho * ufl.inner(self.acceleration, v) * ufl.dx)
+        self.fint_form = dolfinx.fem.form(elastic)
+        self.strain_form = dolfinx.fem.form(strain)
+        self.n = n = V.dofmap.index_map.size_local * 3
+        self.free = np.ones(n, dtype=bool)
+        for bc in bcs:
+            dofs, count = bc.dof_indices()
+            dofs = np.asarray(dofs[:count])
+            self.free[dofs[dofs < n]] = False
+        self.fext = self.assembled(dolfinx.fem.form(load)) if load is not None else np.zeros(n)
+        self.last = self.state(None)  # f_0 = dW/du (u_0), as the carried forces start
+
+    @staticmethod
+    def assembled(form) -> np.ndarray:
+        b = dolfinx.fem.petsc.assemble_vector(form)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        out = b.array.copy()
+        b.destroy()
+        return out
+
+    def contact_gradient(self) -> np.ndarray:
+        self.contact.update()
+        b = self.u.x.petsc_vec.duplicate()
+        b.set(0.0)
+        self.contact.add_residual(b)
+        out = b.array.copy()
+        b.destroy()
+        return out
+
+    def state(self, carried: np.ndarray | None) -> dict:
+        """The last converged state's terms (u is set to it for the evaluations)."""
+        u, integ, n = self.u, self.integ, self.n
+        saved = u.x.array.copy()
+        u.x.array[:] = integ.u_prev.x.array
+        self.acceleration.x.array[:] = integ.a_prev.x.array
+        try:
+            fc = self.contact_gradient() if carried is None else carried
+            self.contact.update()
+            out = {
+                "u": integ.u_prev.x.array[:n].copy(), "Ma": self.assembled(self.mass_form),
+                "fint": self.assembled(self.fint_form), "fc": fc, "W": self.contact.energy(),
+                "strain": float(dolfinx.fem.assemble_scalar(self.strain_form)),
+                "ke": integ.kinetic_energy(),
+            }  # fmt: skip
+            out["external"] = float(self.fext @ out["u"])
+        finally:
+            u.x.array[:] = saved
+        return out
+
+    def step(self) -> dict:
+        """The terms of the step just converged and advanced (energies, F L): the total ``E``
+        (kinetic + strain + contact - the load's work), its change ``dE`` = ``bulk`` +
+        ``contact`` + ``equilibrium``, and ``W1`` the contact energy at its end; with the
+        discrete gradient, the step's pairs and their checks."""
+        step = self.problem.assembler.contact  # the step's contact term during the run
+        carried = step.force.array.copy() if hasattr(step, "force") else None
+        s, p = self.state(carried), self.last
+        du = s["u"] - p["u"]
+        r0 = (p["Ma"] + p["fint"] + p["fc"] - self.fext) * self.free
+        r1 = (s["Ma"] + s["fint"] + s["fc"] - self.fext) * self.free
+        total = s["ke"] + s["strain"] + s["W"] - s["external"]
+        out = {
+            "E": total,
+            "dE": total - (p["ke"] + p["strain"] + p["W"] - p["external"]),
+            "bulk": s["strain"] - p["strain"] - 0.5 * (p["fint"] + s["fint"]) @ du,
+            "contact": s["W"] - p["W"] - 0.5 * (p["fc"] + s["fc"]) @ du,
+            "equilibrium": 0.5 * (r0 + r1) @ du,
+            "W0": p["W"],
+            "W1": s["W"],
+            "residual": float(np.linalg.norm(r1)),
+        }
+        pairs = getattr(step, "pairs", None)
+        if pairs is not None:
+            dx = (pairs.x1[pairs.verts] - pairs.x0[pairs.verts]).reshape(-1, 21)
+            work = float(np.sum(pairs.gradient * dx))
+            de = float(pairs.energy1.sum() - pairs.energy0.sum())
+            out.update(
+                pairs=pairs.verts.shape[0], W0_check=pairs.energy0.sum() - p["W"],
+                W1_check=pairs.energy1.sum() - s["W"], dg_check=work - de,
+            )  # fmt: skip
+        self.last = s
+        return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--speed", type=float, default=30.0)
@@ -121,79 +227,23 @@ def main() -> None:
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs, energy=energy, petsc_options_prefix="split_"
     )
-    acceleration = dolfinx.fem.Function(V)
-    mass_form = dolfinx.fem.form(RHO * ufl.inner(acceleration, v) * ufl.dx)
-    fint_form = dolfinx.fem.form(elastic)
-    strain_form = dolfinx.fem.form(psi * ufl.dx)
-    n = V.dofmap.index_map.size_local * 3
-    free = np.ones(n, dtype=bool)
-    free[(3 * clamped[:, None] + np.arange(3)).ravel()] = False
     kinetic0 = 0.5 * RHO * 0.2**3 * args.speed**2
-
-    def assembled(form) -> np.ndarray:
-        b = dolfinx.fem.petsc.assemble_vector(form)
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        out = b.array.copy()
-        b.destroy()
-        return out
-
-    def contact_gradient() -> np.ndarray:
-        contact.update()
-        b = u.x.petsc_vec.duplicate()
-        b.set(0.0)
-        contact.add_residual(b)
-        out = b.array.copy()
-        b.destroy()
-        return out
-
-    def state(carried: np.ndarray | None) -> dict:
-        """The last converged state's terms (u is set to it for the evaluations)."""
-        saved = u.x.array.copy()
-        u.x.array[:] = integ.u_prev.x.array
-        acceleration.x.array[:] = integ.a_prev.x.array
-        try:
-            fc = contact_gradient() if carried is None else carried
-            contact.update()
-            out = {
-                "u": integ.u_prev.x.array[:n].copy(), "Ma": assembled(mass_form),
-                "fint": assembled(fint_form), "fc": fc, "W": contact.energy(),
-                "strain": float(dolfinx.fem.assemble_scalar(strain_form)),
-                "ke": integ.kinetic_energy(),
-            }  # fmt: skip
-        finally:
-            u.x.array[:] = saved
-        return out
-
-    last = [state(None)]  # f_0 = dW/du (u_0), as the carried forces start
+    split = EnergySplit(problem, integ, elastic, psi * ufl.dx, bcs, rho=RHO)
 
     def on_step(record) -> None:
-        step = problem.assembler.contact  # the step's contact term during the run
-        carried = step.force.array.copy() if hasattr(step, "force") else None
-        s, p = state(carried), last[0]
-        du = s["u"] - p["u"]
-        r0 = (p["Ma"] + p["fint"] + p["fc"]) * free
-        r1 = (s["Ma"] + s["fint"] + s["fc"]) * free
-        bulk = s["strain"] - p["strain"] - 0.5 * (p["fint"] + s["fint"]) @ du
-        term = s["W"] - p["W"] - 0.5 * (p["fc"] + s["fc"]) @ du
-        equilibrium = 0.5 * (r0 + r1) @ du
-        change = s["ke"] - p["ke"] + s["strain"] - p["strain"] + s["W"] - p["W"]
+        t = split.step()
         line = (
             f"step {record.step:3d} t {record.t:.5f} dt {record.dt:.2e} cuts {record.cuts:2d} "
-            f"its {record.iterations:2d}  E {(s['ke'] + s['strain'] + s['W']) / kinetic0:.5f} "
-            f"dE {change / kinetic0:+.2e} = bulk {bulk / kinetic0:+.2e} contact "
-            f"{term / kinetic0:+.2e} equilibrium {equilibrium / kinetic0:+.2e}"
+            f"its {record.iterations:2d}  E {t['E'] / kinetic0:.5f} "
+            f"dE {t['dE'] / kinetic0:+.2e} = bulk {t['bulk'] / kinetic0:+.2e} contact "
+            f"{t['contact'] / kinetic0:+.2e} equilibrium {t['equilibrium'] / kinetic0:+.2e}"
         )
-        pairs = getattr(step, "pairs", None)
-        if pairs is not None:
-            dx = (pairs.x1[pairs.verts] - pairs.x0[pairs.verts]).reshape(-1, 21)
-            work = float(np.sum(pairs.gradient * dx))
-            de = float(pairs.energy1.sum() - pairs.energy0.sum())
+        if "pairs" in t:
             line += (
-                f"  pairs {pairs.verts.shape[0]} (W0 {pairs.energy0.sum() - p['W']:+.1e}, "
-                f"W1 {pairs.energy1.sum() - s['W']:+.1e}; DG.du - dW {work - de:+.1e})"
+                f"  pairs {t['pairs']} (W0 {t['W0_check']:+.1e}, W1 {t['W1_check']:+.1e}; "
+                f"DG.du - dW {t['dg_check']:+.1e})"
             )
         print(line, flush=True)
-        last[0] = s
 
     history = fm.solve_time_steps(
         problem, integ, args.steps * DT, DT, strain_energy=psi * ufl.dx, progress=False,

@@ -84,6 +84,7 @@ def run(
     t_end: float,
     energy_cap: float | None = None,
     energy: bool = True,
+    gain_cap: float | None = None,
 ) -> dict:
     comm = mesh.comm
     model = Impact(mesh, method, dt, speed, energy)
@@ -91,6 +92,8 @@ def run(
     kwargs = {}
     if energy_cap is not None:  # relative to the initial (kinetic) energy
         kwargs["max_energy_change"] = energy_cap * model.integrator.kinetic_energy()
+    if gain_cap is not None:  # relative to the initial (kinetic) energy
+        kwargs["max_energy_gain"] = gain_cap * model.integrator.kinetic_energy()
     if scheme is not None:
         kwargs["contact_force"] = scheme
     tic = time.perf_counter()
@@ -135,6 +138,10 @@ def main() -> None:
         help="solve_time_steps(max_energy_change=...) as a fraction of the initial energy",
     )  # fmt: skip
     parser.add_argument(
+        "--max-energy-gain", type=float, default=None,
+        help="solve_time_steps(max_energy_gain=...) as a fraction of the initial energy",
+    )  # fmt: skip
+    parser.add_argument(
         "--no-energy", action="store_true",
         help="ContactProblem without energy= (solve_time_steps hands it the potential when it can)",
     )  # fmt: skip
@@ -154,8 +161,8 @@ def main() -> None:
     if comm.rank == 0:
         print(
             f"{comm.size} rank(s), {args.cells}^3 cuboids per cube, max_energy_change "
-            f"{args.max_energy_change} (of the initial energy)"
-            + (", ContactProblem without energy=" if args.no_energy else "")
+            f"{args.max_energy_change}, max_energy_gain {args.max_energy_gain} (of the initial "
+            "energy)" + (", ContactProblem without energy=" if args.no_energy else "")
         )
         print(
             f"{'model':7s} {'method':15s} {'contact force':13s} {'E max/E0':>9s} "
@@ -171,7 +178,7 @@ def main() -> None:
                     continue  # average-acceleration Newmark only
                 r = run(
                     mesh, method, scheme, dt, speed, t_end, args.max_energy_change,
-                    not args.no_energy,
+                    not args.no_energy, args.max_energy_gain,
                 )  # fmt: skip
                 if comm.rank != 0:
                     continue

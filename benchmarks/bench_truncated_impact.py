@@ -37,7 +37,7 @@ def cube_over_plate(comm: MPI.Comm) -> dolfinx.mesh.Mesh:
     )
 
 
-def run(mesh, speed: float, scheme: str, steps: int) -> dict:
+def run(mesh, speed: float, scheme: str, steps: int, gain: float | None = None) -> dict:
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     v = ufl.TestFunction(V)
@@ -68,6 +68,7 @@ def run(mesh, speed: float, scheme: str, steps: int) -> dict:
         history = fm.solve_time_steps(
             problem, integrator, steps * DT, DT, strain_energy=psi * ufl.dx, progress=False,
             contact_force=scheme,
+            max_energy_gain=None if gain is None else gain * kinetic,
         )  # fmt: skip
         failure = ""
     except RuntimeError as err:
@@ -94,14 +95,21 @@ def main() -> None:
         "--schemes", nargs="*", default=["endpoint", "midpoint", "discrete_gradient"]
     )
     parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument(
+        "--max-energy-gain", type=float, default=None,
+        help="solve_time_steps(max_energy_gain=...) as a fraction of the initial kinetic energy",
+    )  # fmt: skip
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     mesh = cube_over_plate(comm)
     if comm.rank == 0:
-        print(f"{comm.size} rank(s), dt {DT}, {args.steps} steps; energy / initial kinetic")
+        print(
+            f"{comm.size} rank(s), dt {DT}, {args.steps} steps, max_energy_gain "
+            f"{args.max_energy_gain}; energy / initial kinetic"
+        )
     for speed in args.speeds:
         for scheme in args.schemes:
-            r = run(mesh, speed, scheme, args.steps)
+            r = run(mesh, speed, scheme, args.steps, args.max_energy_gain)
             if comm.rank != 0:
                 continue
             if r["failure"]:
