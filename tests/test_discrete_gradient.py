@@ -56,7 +56,8 @@ def _discrete_gradient(x0: np.ndarray, x1: np.ndarray) -> tuple[np.ndarray, np.n
 @pytest.mark.parametrize("start", ["in contact", "apart"])
 def test_pair_discrete_gradient_work_momentum_and_jacobian(start):
     """One pair over a step: ``DG . dU = W(x1) - W(x0)`` to round-off, ``DG`` sums to zero
-    per component (no momentum), and its Jacobian with respect to ``x1`` matches 4th-order
+    per component (no momentum) and has no moment about the midpoint configuration (no
+    angular momentum), and its Jacobian with respect to ``x1`` matches 4th-order
     finite differences (rtol 1e-5), for a pair in contact at both ends and for one apart at
     the start (``W(x0) = 0``: the contact begins within the step)."""
     x1 = np.vstack((X_TRI, X_TET)).ravel() + STEP.ravel()
@@ -68,6 +69,15 @@ def test_pair_discrete_gradient_work_momentum_and_jacobian(start):
     dg, jac = _discrete_gradient(x0, x1)
     assert abs(dg @ (x1 - x0) - (e1 - e0)) <= 1e-13 * abs(e1 - e0) + 1e-16
     assert np.abs(dg.reshape(7, 3).sum(axis=0)).max() <= 1e-13 * np.abs(dg).max()
+    # no moment about the midpoint configuration (angular momentum under the trapezoidal
+    # rule), though the step turns the pair: the step less its mean has a moment of the
+    # order of the step itself, so a correction along it would turn the pair
+    m = 0.5 * (x0 + x1).reshape(7, 3)
+    r = m - m.mean(axis=0)
+    du = (x1 - x0).reshape(7, 3)
+    assert np.linalg.norm(np.cross(r, du - du.mean(axis=0)).sum(axis=0)) > 1e-3
+    torque = np.cross(m, dg.reshape(7, 3)).sum(axis=0)
+    assert np.abs(torque).max() <= 1e-12 * np.abs(dg).max(), torque
     # the midpoint gradient alone does not have the exact work here
     gm = _pair(0.5 * (x0 + x1))[1]
     assert abs(gm @ (x1 - x0) - (e1 - e0)) > 1e-6 * abs(e1 - e0)

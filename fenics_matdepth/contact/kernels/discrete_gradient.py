@@ -2,23 +2,30 @@
 (Gonzalez 1996), from the pair kernel's values at the step's start, midpoint and end.
 
 With ``x0``, ``x1`` the pair's 21 vertex coordinates at the start and end of a step,
-``dU = x1 - x0``, ``g_m`` the energy's gradient at the midpoint and ``w = M dU`` the step with
-the pair's mean translation removed (``M`` subtracts the mean of each component over the 7
-vertices: symmetric, idempotent, zero on rigid translations),
+``m = (x0 + x1) / 2``, ``dU = x1 - x0``, ``g_m`` the energy's gradient at the midpoint and
+``w = P dU`` the step with the pair's rigid motion at the midpoint removed (``P`` projects out,
+in R^21, the 3 translations and the 3 rotations ``e_k x (m_a - mean m)`` of the 7 vertices:
+symmetric, idempotent; ``w_a = dU_a - mean dU - omega x r_a`` with ``r_a = m_a - mean m`` and
+``omega = G^-1 sum_a r_a x dU_a``, ``G = sum_a (|r_a|^2 I - r_a r_a^T)``),
 
     ``DG = g_m + c w``,  ``c = (W(x1) - W(x0) - g_m . dU) / (w . w)``.
 
-Then ``DG . dU = W(x1) - W(x0)`` exactly (``w . dU = w . w``), and ``DG`` sums to zero over
-the pair's vertices per component (``g_m`` by the energy's translation invariance, ``w`` by
-construction): a force whose work over the step is the change of the pair's energy and which
-moves no momentum. Where ``w . w`` is at rounding level (a step that only translates the pair,
-or no step) ``c = 0``: there ``W(x1) - W(x0) - g_m . dU`` is itself of order ``|w|^2``.
+Then ``DG . dU = W(x1) - W(x0)`` exactly (``w . dU = w . w``); ``DG`` sums to zero over the
+pair's vertices per component and has no moment about the midpoint configuration,
+``sum_a m_a x DG_a = 0`` (``g_m`` by the energy's invariance under translations and rotations,
+``w`` by construction): a force whose work over the step is the change of the pair's energy and
+which moves neither linear nor (with the trapezoidal rule's midpoint positions) angular
+momentum. Where ``w . w`` is at rounding level (a step that only moves the pair rigidly, or no
+step) ``c = 0``: there ``W(x1) - W(x0) - g_m . dU`` is itself of order ``|w|^2`` (a rigid
+rotation's step is a rigid mode at ``m`` exactly, the Cayley form, so it vanishes).
 
-The derivative of ``DG`` with respect to ``x1`` (``dg_m/dx1 = H_m / 2``):
+The derivative of ``DG`` with respect to ``x1`` (``dg_m/dx1 = H_m / 2``, ``dm/dx1 = 1/2``),
+with ``D = d(P dU)/dm`` at fixed ``dU`` (the rotation fit following the midpoint):
 
-    ``J = H_m / 2 + c M + w (x) (g_1 - g_m - H_m dU / 2 - 2 c w) / (w . w)``,
+    ``J = H_m / 2 + c (P + D / 2) + w (x) q``,
+    ``q = (g_1 - g_m - H_m dU / 2 - 2 c w - c D^T w) / (w . w)``,
 
-not symmetric (the rank-one part).
+not symmetric (the rank-one part and ``D``).
 """
 
 from __future__ import annotations
@@ -39,30 +46,75 @@ GUARD_RTOL = 1e-8
 
 
 @njit(inline="always")
-def _pair_step(x0, x1, verts, p, du, w):
-    """``du = x1 - x0`` and ``w = M du`` over pair p's 7 vertices; returns ``(w . w, h^2)``
-    with h the largest extent of the pair's box at ``x1``."""
+def _pair_step(x0, x1, verts, p, du, w, r, ginv, omega):
+    """``du = x1 - x0`` and ``w = P du`` over pair p's 7 vertices, with ``r`` (7, 3) the
+    midpoint's positions about their mean, ``ginv`` (3, 3) the inverse of ``G`` and ``omega``
+    (3,) the removed rotation; returns ``(w . w, h^2)`` with h the largest extent of the
+    pair's box at ``x1``."""
     for a in range(7):
         v = verts[p, a]
-        for r in range(3):
-            du[3 * a + r] = x1[v, r] - x0[v, r]
-    ww = 0.0
+        for k in range(3):
+            du[3 * a + k] = x1[v, k] - x0[v, k]
+            r[a, k] = 0.5 * (x0[v, k] + x1[v, k])
     ext = 0.0
-    for r in range(3):
+    for k in range(3):
         mean = 0.0
-        lo = x1[verts[p, 0], r]
+        centre = 0.0
+        lo = x1[verts[p, 0], k]
         hi = lo
         for a in range(7):
-            mean += du[3 * a + r]
-            c = x1[verts[p, a], r]
+            mean += du[3 * a + k]
+            centre += r[a, k]
+            c = x1[verts[p, a], k]
             lo = min(lo, c)
             hi = max(hi, c)
         mean /= 7.0
+        centre /= 7.0
         for a in range(7):
-            w[3 * a + r] = du[3 * a + r] - mean
-            ww += w[3 * a + r] * w[3 * a + r]
+            w[3 * a + k] = du[3 * a + k] - mean
+            r[a, k] -= centre
         ext = max(ext, hi - lo)
+    # the rotation: G omega = sum_a r_a x w_a (w's mean is 0, so this is sum_a r_a x du_a)
+    g = np.zeros((3, 3), dtype=FLOAT)
+    ang = np.zeros(3, dtype=FLOAT)
+    for a in range(7):
+        rr = r[a, 0] * r[a, 0] + r[a, 1] * r[a, 1] + r[a, 2] * r[a, 2]
+        for k in range(3):
+            g[k, k] += rr
+            for j in range(3):
+                g[k, j] -= r[a, k] * r[a, j]
+        ang[0] += r[a, 1] * w[3 * a + 2] - r[a, 2] * w[3 * a + 1]
+        ang[1] += r[a, 2] * w[3 * a] - r[a, 0] * w[3 * a + 2]
+        ang[2] += r[a, 0] * w[3 * a + 1] - r[a, 1] * w[3 * a]
+    _inverse3(g, ginv)
+    for k in range(3):
+        omega[k] = ginv[k, 0] * ang[0] + ginv[k, 1] * ang[1] + ginv[k, 2] * ang[2]
+    ww = 0.0
+    for a in range(7):
+        w[3 * a] -= omega[1] * r[a, 2] - omega[2] * r[a, 1]
+        w[3 * a + 1] -= omega[2] * r[a, 0] - omega[0] * r[a, 2]
+        w[3 * a + 2] -= omega[0] * r[a, 1] - omega[1] * r[a, 0]
+        for k in range(3):
+            ww += w[3 * a + k] * w[3 * a + k]
     return ww, ext * ext
+
+
+@njit(inline="always")
+def _inverse3(g, out):
+    """``out = g^-1`` for a symmetric positive definite 3 x 3 ``g`` (the adjugate)."""
+    out[0, 0] = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
+    out[0, 1] = g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]
+    out[0, 2] = g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]
+    out[1, 0] = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
+    out[1, 1] = g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]
+    out[1, 2] = g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]
+    out[2, 0] = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
+    out[2, 1] = g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]
+    out[2, 2] = g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]
+    det = g[0, 0] * out[0, 0] + g[0, 1] * out[1, 0] + g[0, 2] * out[2, 0]
+    for i in range(3):
+        for j in range(3):
+            out[i, j] /= det
 
 
 @njit(cache=True, fastmath=FMA)
@@ -78,8 +130,11 @@ def discrete_gradients(x0, x1, verts, e0, e1, gm, dg, coef):
     """
     du = np.empty(21, dtype=FLOAT)
     w = np.empty(21, dtype=FLOAT)
+    r = np.empty((7, 3), dtype=FLOAT)
+    ginv = np.empty((3, 3), dtype=FLOAT)
+    omega = np.empty(3, dtype=FLOAT)
     for p in range(verts.shape[0]):
-        ww, h2 = _pair_step(x0, x1, verts, p, du, w)
+        ww, h2 = _pair_step(x0, x1, verts, p, du, w, r, ginv, omega)
         c = 0.0
         if ww > GUARD_RTOL * GUARD_RTOL * h2:
             work = 0.0
@@ -105,22 +160,82 @@ def discrete_gradient_jacobians(x0, x1, verts, gm, g1, hm, coef, jac):
     du = np.empty(21, dtype=FLOAT)
     w = np.empty(21, dtype=FLOAT)
     q = np.empty(21, dtype=FLOAT)
+    r = np.empty((7, 3), dtype=FLOAT)
+    ginv = np.empty((3, 3), dtype=FLOAT)
+    omega = np.empty(3, dtype=FLOAT)
+    d = np.empty((21, 21), dtype=FLOAT)
+    bw = np.empty((21, 3), dtype=FLOAT)
     for p in range(verts.shape[0]):
-        ww, h2 = _pair_step(x0, x1, verts, p, du, w)
+        ww, h2 = _pair_step(x0, x1, verts, p, du, w, r, ginv, omega)
         for i in range(21):
             for j in range(21):
                 jac[p, i, j] = 0.5 * hm[p, i, j]
         if not ww > GUARD_RTOL * GUARD_RTOL * h2:
             continue
         c = coef[p]
+        _rotation_derivative(du, r, ginv, omega, d)
+        # the rotation modes' columns, e_k x r_a, for P = M - B G^-1 B^T
+        for a in range(7):
+            bw[3 * a, 0], bw[3 * a + 1, 0], bw[3 * a + 2, 0] = 0.0, -r[a, 2], r[a, 1]
+            bw[3 * a, 1], bw[3 * a + 1, 1], bw[3 * a + 2, 1] = r[a, 2], 0.0, -r[a, 0]
+            bw[3 * a, 2], bw[3 * a + 1, 2], bw[3 * a + 2, 2] = -r[a, 1], r[a, 0], 0.0
         for j in range(21):
             half_h_du = 0.0
+            dtw = 0.0
             for k in range(21):
                 half_h_du += hm[p, j, k] * du[k]
-            q[j] = (g1[p, j] - gm[p, j] - 0.5 * half_h_du - 2.0 * c * w[j]) / ww
+                dtw += d[k, j] * w[k]
+            q[j] = (g1[p, j] - gm[p, j] - 0.5 * half_h_du - 2.0 * c * w[j] - c * dtw) / ww
         for i in range(21):
             for j in range(21):
-                jac[p, i, j] += w[i] * q[j]
-                # c M: c on the diagonal, -c / 7 between equal components of any two vertices
+                # c P: c on the diagonal, -c / 7 between equal components of any two vertices,
+                # minus c B G^-1 B^T (the rotations)
+                rot = 0.0
+                for k in range(3):
+                    for m in range(3):
+                        rot += bw[i, k] * ginv[k, m] * bw[j, m]
+                proj = -rot
                 if i % 3 == j % 3:
-                    jac[p, i, j] += c * ((1.0 if i == j else 0.0) - 1.0 / 7.0)
+                    proj += (1.0 if i == j else 0.0) - 1.0 / 7.0
+                jac[p, i, j] += w[i] * q[j] + c * (proj + 0.5 * d[i, j])
+
+
+@njit(inline="always")
+def _rotation_derivative(du, r, ginv, omega, d):
+    """``d[:, 3 c + s] = d(P du)/dm_{c s}`` at fixed ``du``: with ``dL = e_s x du'_c`` (``du'``
+    the step less its mean) and ``dG = 2 r_{c s} I - e_s r_c^T - r_c e_s^T``, ``d omega =
+    G^-1 (dL - dG omega)`` and ``d w_a = -d omega x r_a - (delta_ac - 1/7) omega x e_s``."""
+    mean = np.zeros(3, dtype=FLOAT)
+    for a in range(7):
+        for k in range(3):
+            mean[k] += du[3 * a + k] / 7.0
+    e = np.zeros(3, dtype=FLOAT)
+    rhs = np.empty(3, dtype=FLOAT)
+    dom = np.empty(3, dtype=FLOAT)
+    oxe = np.empty(3, dtype=FLOAT)
+    for cv in range(7):
+        dp0 = du[3 * cv] - mean[0]
+        dp1 = du[3 * cv + 1] - mean[1]
+        dp2 = du[3 * cv + 2] - mean[2]
+        for s in range(3):
+            e[:] = 0.0
+            e[s] = 1.0
+            # dL = e_s x du'_c
+            rhs[0] = e[1] * dp2 - e[2] * dp1
+            rhs[1] = e[2] * dp0 - e[0] * dp2
+            rhs[2] = e[0] * dp1 - e[1] * dp0
+            # - dG omega = -(2 r_cs omega - e_s (r_c . omega) - r_c omega_s)
+            rdo = r[cv, 0] * omega[0] + r[cv, 1] * omega[1] + r[cv, 2] * omega[2]
+            for k in range(3):
+                rhs[k] -= 2.0 * r[cv, s] * omega[k] - e[k] * rdo - r[cv, k] * omega[s]
+            for k in range(3):
+                dom[k] = ginv[k, 0] * rhs[0] + ginv[k, 1] * rhs[1] + ginv[k, 2] * rhs[2]
+            oxe[0] = omega[1] * e[2] - omega[2] * e[1]
+            oxe[1] = omega[2] * e[0] - omega[0] * e[2]
+            oxe[2] = omega[0] * e[1] - omega[1] * e[0]
+            col = 3 * cv + s
+            for a in range(7):
+                f = (1.0 if a == cv else 0.0) - 1.0 / 7.0
+                d[3 * a, col] = -(dom[1] * r[a, 2] - dom[2] * r[a, 1]) - f * oxe[0]
+                d[3 * a + 1, col] = -(dom[2] * r[a, 0] - dom[0] * r[a, 2]) - f * oxe[1]
+                d[3 * a + 2, col] = -(dom[0] * r[a, 1] - dom[1] * r[a, 0]) - f * oxe[2]
