@@ -499,7 +499,9 @@ def test_dropped_ball_bounces_and_the_controller_cuts_dt_at_impact():
     first_contact = t[np.argmax(contact)]
     # nominal steps until the ball arrives; cut steps around the impact only
     assert np.all(dt[t < first_contact - 2 * NOMINAL_DT] == NOMINAL_DT)
-    assert dt[contact].min() <= NOMINAL_DT / 4
+    # (the end-of-step force gains at the impact and was cut to a quarter; the default discrete
+    # gradient gains nothing there, and the bulk's error at the impact still asks for a cut)
+    assert dt[contact].min() <= NOMINAL_DT / 2
     assert sum(r.cuts for r in history) > 0
     # in flight between the two impacts dt is back at the nominal step
     in_flight = (t > 0.22) & (t < 0.42)
