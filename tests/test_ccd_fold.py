@@ -114,9 +114,12 @@ def _lowest_over_the_table(X, x):
     return float(x[upper, 2].min()) if upper.any() else np.inf
 
 
+@pytest.mark.serial
 def test_strip_folded_in_large_load_steps_passes_through_without_collision_detection():
     """The failure: with ``ccd=False`` the upper layer ends below the lower one, which is held
-    on the table (z = 0 its bottom)."""
+    on the table (z = 0 its bottom). Serial only: where the uncapped Newton steps end depends
+    on the iterates' rounding (on 2 ranks the same set-up ended on the lower layer, 0.040 above
+    the table; measured once), and this test only shows the set-up can fail."""
     lowest, steps = _fold(ccd=False)
     assert np.isclose(steps[-1].load, 1.0)
     assert lowest < 0.0, lowest
