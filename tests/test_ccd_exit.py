@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fenics_matdepth.geometry.ccd import EXIT_MARGIN, exit_fraction, sweep_caps
+from fenics_matdepth.geometry.ccd import EXIT_DEPTH, EXIT_MARGIN, exit_fraction, sweep_caps
 
 # pure numba/numpy: every rank would run the same computation, so the serial pass runs it
 pytestmark = pytest.mark.serial
@@ -82,11 +82,11 @@ def test_exit_cap_is_never_later_than_the_crossing_and_keeps_the_vertex_behind()
     the vertex stays clear of the triangle grown by 1 %, there is no cap."""
     rng = np.random.default_rng(7)
     p0, tri0, p1, tri1 = _random_trajectories(rng, 200)
-    margin = 1e-6
-    caps = exit_fraction(p0, tri0, p1, tri1, margin)
+    depth = 1e-6
+    caps = exit_fraction(p0, tri0, p1, tri1, depth)
     crossed = clear = 0
     for i in range(p0.shape[0]):
-        if _height_and_inside(p0[i : i + 1], tri0[i : i + 1])[0][0] >= 0.0:
+        if _height_and_inside(p0[i : i + 1], tri0[i : i + 1])[0][0] >= -depth:
             assert caps[i] == 1.0
             continue
         true = _reference_exit(p0[i], tri0[i], p1[i], tri1[i])
@@ -106,22 +106,25 @@ def test_exit_cap_is_never_later_than_the_crossing_and_keeps_the_vertex_behind()
 
 
 def test_exit_cap_analytical_cases():
-    """A vertex 0.1 under a fixed unit triangle rising 0.4: caps at the crossing less the
-    margin, 0.25 - m / 0.4; sliding along under it, or leaving beside it, not capped; a vertex
-    in front, not capped; a vertex behind the plane by less than the margin stops at half its
-    height; a triangle tilting down onto the point caps where its plane reaches it."""
+    """A vertex 0.1 under a fixed unit triangle rising 0.4, depth m = 1e-4 (margin m): stopped
+    2 m under the plane, at 0.25 - 2 m / 0.4; sliding along under it, or leaving beside it,
+    not capped; a vertex in front, or behind by less than m (on the plane of a flush face),
+    not tested; a vertex 1.5 m behind stops 1.25 m behind (half its height beyond m); a
+    triangle tilting down onto the point caps where its plane reaches it."""
     tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     p = np.array([0.2, 0.2, -0.1])
     m = 1e-4
     up = np.array([0.0, 0.0, 0.4])
-    assert np.isclose(exit_fraction(p, tri, p + up, tri, m)[0], 0.25 - m / 0.4, atol=1e-12)
+    assert np.isclose(exit_fraction(p, tri, p + up, tri, m)[0], 0.25 - 2 * m / 0.4, atol=1e-12)
     assert exit_fraction(p, tri, p + [0.5, 0.0, 0.0], tri, m)[0] == 1.0  # sliding under it
     beside = np.array([1.5, 1.5, -0.1])
     assert exit_fraction(beside, tri, beside + up, tri, m)[0] == 1.0
     assert exit_fraction(-p * [1, 1, -1], tri, -p * [1, 1, -1] + up, tri, m)[0] == 1.0
-    near = np.array([0.2, 0.2, -1e-5])  # height 1e-5 < margin: kept behind by 5e-6
+    flush = np.array([0.2, 0.2, -0.5 * m])
+    assert exit_fraction(flush, tri, flush + up, tri, m)[0] == 1.0
+    near = np.array([0.2, 0.2, -1.5 * m])
     cap = exit_fraction(near, tri, near + up, tri, m)[0]
-    assert np.isclose(cap, 0.5e-5 / 0.4, rtol=1e-9), cap
+    assert np.isclose(cap, 0.25 * m / 0.4, rtol=1e-9), cap
     # the third vertex goes 2 down: the plane over (0.25, 0.25) is at -2 t * 0.25, the point's
     # height -0.05, reached at t = 0.1
     q = np.array([0.25, 0.25, -0.05])
@@ -157,16 +160,16 @@ def _sweep(x0, x1, tri, exits=True):
 
 def test_sweep_caps_a_vertex_leaving_through_the_far_side_only():
     """The facing-down triangle's vertices (inside the slab above its bottom face) moved 0.1
-    down, through the bottom face: capped (kind 2, the pass-through) before the crossing, 0.5
-    less the margin; without ``exits`` not capped. The facing-up triangle's vertices moved
-    down through it the same way (their surface faces the other way: leaving by the face
-    they came in by): not capped."""
+    down, through the bottom face: capped (kind 2, the pass-through) before the crossing, the
+    exit depth and margin short of it; without ``exits`` not capped. The facing-up triangle's
+    vertices moved down through it the same way (their surface faces the other way: leaving
+    by the face they came in by): not capped."""
     x0, tri = _two_layer_surface()
     x1 = x0.copy()
     x1[3:6, 2] -= 0.1
     best, capped, kind, v, t = _sweep(x0, x1, tri)
     assert kind == 2 and t == 0 and v in (3, 4, 5) and capped == 3, (kind, t, v, capped)
-    assert np.isclose(best, 0.5 - EXIT_MARGIN * 0.01 / 0.1, atol=1e-12), best
+    assert np.isclose(best, 0.5 - (EXIT_DEPTH + EXIT_MARGIN) * 0.01 / 0.1, atol=1e-12), best
     assert _sweep(x0, x1, tri, exits=False)[0] == 1.0
     x1 = x0.copy()
     x1[6:9, 2] -= 0.4

@@ -26,9 +26,11 @@ vertex's own surface does (``n_v . n_T > ALIGNED``): that is the far side of the
 entered, as the face of a thin layer opposite the one a surface came in by. Its crossing of the
 moving triangle is found exactly, as the first root of the cubic signed volume
 ``det(x_1 - x_0, x_2 - x_0, x_v - x_0)(t)`` at which the vertex projects into the triangle;
-the step is capped before it, the vertex still behind by half its distance or ``EXIT_MARGIN``
-of the entry tolerance, whichever is smaller. Unlike an entry, leaving is never allowed past
-the face, so a vertex held against the far face by a step after step stays inside.
+only vertices more than ``EXIT_DEPTH`` entry tolerances behind the plane are tested, and the
+step is capped before they come that close (by ``EXIT_MARGIN`` entry tolerances, or half their
+height beyond it where that is less). Unlike an entry, leaving is never allowed past that
+level, so a vertex held against the far face step after step stays inside; a vertex on the
+plane of a face (flush side faces of two bodies) is free.
 
 Lengths are in the unit of the coordinates; times are fractions of the step, in [0, 1].
 """
@@ -44,6 +46,7 @@ from fenics_matdepth.geometry.distance import point_triangle_dist2
 __all__ = [
     "ADVANCE",
     "ALIGNED",
+    "EXIT_DEPTH",
     "EXIT_MARGIN",
     "MAX_ADVANCES",
     "PASS_THROUGH",
@@ -77,8 +80,15 @@ PASS_THROUGH = 2
 #: and out through its side face, at about 90°, is free).
 ALIGNED = 0.5
 
-#: A vertex stopped short of leaving through a triangle stays behind its plane by half its
-#: distance, or by this fraction of the entry tolerance where that is less.
+#: A vertex is tested for leaving through a triangle only when it is more than this fraction
+#: of the entry tolerance behind the triangle's plane, and is stopped before it comes that
+#: close: a vertex on (or within rounding of) the plane of a face, as the edge of a body
+#: pressed onto another whose side faces are flush with its own, slides and leaves freely.
+EXIT_DEPTH = 0.25
+
+#: A vertex stopped short of leaving through a triangle stays behind the plane by the exit
+#: depth plus half its height beyond it, or plus this fraction of the entry tolerance where
+#: that is less.
 EXIT_MARGIN = 1e-3
 
 #: A crossing counts where the vertex projects into the triangle grown by this fraction of
@@ -247,27 +257,38 @@ def _cubic(c0, c1, c2, c3, t):
     return c0 + t * (c1 + t * (c2 + t * c3))
 
 
-@njit(cache=True)
-def _exit_cap(x0, x1, xs, margin):
-    """The fraction of the step before the vertex (row 0 of the (4, 3) blocks), behind the
-    plane of the triangle (rows 1-3) at the start, could leave through the triangle (1: it
-    does not within the step); there it is still behind by half its start height or
-    ``margin`` (L), whichever is less (module doc).
-
-    The signed volume is a cubic in t, interpolated from four values; its monotone pieces
-    (between the roots of its derivative) are searched in order for a rise through the margin
-    (scaled to a volume), bisected, and the first rise where the vertex projects into the
-    triangle caps the step at the bracket's lower end (still behind).
-    """
-    f0 = _signed_volume(x0, x1, 0.0, xs)
-    e1x, e1y, e1z = x0[2, 0] - x0[1, 0], x0[2, 1] - x0[1, 1], x0[2, 2] - x0[1, 2]
-    e2x, e2y, e2z = x0[3, 0] - x0[1, 0], x0[3, 1] - x0[1, 1], x0[3, 2] - x0[1, 2]
-    area2 = np.sqrt(
+@njit(inline="always")
+def _area2(x0, x1, t, xs):
+    """Twice the area of the triangle (rows 1-3 of the blocks) at time t."""
+    _at(x0, x1, t, xs)
+    e1x, e1y, e1z = xs[2, 0] - xs[1, 0], xs[2, 1] - xs[1, 1], xs[2, 2] - xs[1, 2]
+    e2x, e2y, e2z = xs[3, 0] - xs[1, 0], xs[3, 1] - xs[1, 1], xs[3, 2] - xs[1, 2]
+    return np.sqrt(
         (e1y * e2z - e1z * e2y) ** 2 + (e1z * e2x - e1x * e2z) ** 2 + (e1x * e2y - e1y * e2x) ** 2
     )
-    if not (f0 < 0.0 and area2 > 0.0):
+
+
+@njit(cache=True)
+def _exit_cap(x0, x1, xs, depth, margin):
+    """The fraction of the step before the vertex (row 0 of the (4, 3) blocks), more than
+    ``depth`` (L) behind the plane of the triangle (rows 1-3) at the start, could come within
+    ``depth`` of it on its way out through the triangle (1: it does not within the step, or
+    it starts within ``depth``); there it is still more than ``depth`` behind, by ``margin``
+    or half its start height beyond ``depth``, whichever is less (module doc).
+
+    The signed volume is a cubic in t, interpolated from four values; its monotone pieces
+    (between the roots of its derivative) are searched in order for a rise through the stop
+    level (a height, times the triangle's doubled area at the start), bisected, and the first
+    rise where the vertex projects into the triangle caps the step at the bracket's lower end
+    (or, where the triangle's area has grown so that the height there is too small, at the
+    height's own crossing of the level halfway, bisected).
+    """
+    f0 = _signed_volume(x0, x1, 0.0, xs)
+    area0 = _area2(x0, x1, 0.0, xs)
+    if not (area0 > 0.0 and -f0 > depth * area0):
         return 1.0
-    shift = min(margin * area2, -0.5 * f0)
+    height0 = -f0 / area0
+    shift = (depth + min(margin, 0.5 * (height0 - depth))) * area0
     f1 = _signed_volume(x0, x1, 1.0 / 3.0, xs)
     f2 = _signed_volume(x0, x1, 2.0 / 3.0, xs)
     f3 = _signed_volume(x0, x1, 1.0, xs)
@@ -309,7 +330,22 @@ def _exit_cap(x0, x1, xs, margin):
             else:
                 b = mid
         if _projects_inside(x0, x1, b, xs, BARY_SLACK):
-            return a
+            # the stop level was set with the start's area: where the area has grown, the
+            # height at a may be below depth; then bisect the height itself over [0, a] for a
+            # time where it is above depth by half the intended margin
+            level = depth + 0.5 * (shift / area0 - depth)
+            if -_signed_volume(x0, x1, a, xs) > level * _area2(x0, x1, a, xs):
+                return a
+            lo2, hi2 = 0.0, a
+            for _ in range(64):
+                mid = 0.5 * (lo2 + hi2)
+                if not (lo2 < mid < hi2):
+                    break
+                if -_signed_volume(x0, x1, mid, xs) > level * _area2(x0, x1, mid, xs):
+                    lo2 = mid
+                else:
+                    hi2 = mid
+            return lo2
     return 1.0
 
 
@@ -440,7 +476,7 @@ def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, p
                     continue
                 _gather4(x0, v, ta0, ta1, ta2, blk0)
                 _gather4(x1, v, ta0, ta1, ta2, blk1)
-                cap = _exit_cap(blk0, blk1, xs, EXIT_MARGIN * e)
+                cap = _exit_cap(blk0, blk1, xs, EXIT_DEPTH * e, EXIT_MARGIN * e)
                 if cap < 1.0:
                     capped += 1
                     if cap < best:
@@ -596,11 +632,11 @@ def sweep_caps(
 
 
 @njit(cache=True)
-def _exit_caps(x0, x1, margin):
+def _exit_caps(x0, x1, depth, margin):
     out = np.empty(x0.shape[0], dtype=x0.dtype)
     xs = np.empty((4, 3), dtype=x0.dtype)
     for i in range(x0.shape[0]):
-        out[i] = _exit_cap(x0[i], x1[i], xs, margin[i])
+        out[i] = _exit_cap(x0[i], x1[i], xs, depth[i], margin[i])
     return out
 
 
@@ -609,28 +645,37 @@ def exit_fraction(
     tri0: np.ndarray,
     p1: np.ndarray,
     tri1: np.ndarray,
-    margin: float | np.ndarray,
+    depth: float | np.ndarray,
+    margin: float | np.ndarray | None = None,
 ) -> np.ndarray:
     """The exit cap of each vertex-triangle pair: the fraction of the step before the vertex,
-    behind the triangle's plane at the start, could leave through the triangle (the module
-    doc, "pass-through"); at the cap it is still behind by half its start height or
-    ``margin``, whichever is less.
+    more than ``depth`` behind the triangle's plane at the start, could come within ``depth``
+    of it on its way out through the triangle (the module doc, "pass-through"); at the cap it
+    is still behind by ``depth`` plus ``margin``, or plus half its start height beyond
+    ``depth`` where that is less.
 
     Args:
         p0, p1: (n, 3) or (3,) vertex positions at times 0 and 1 (L).
         tri0, tri1: (n, 3, 3) or (3, 3) triangle vertex positions at times 0 and 1, the
             outward normal by the right-hand rule (L).
-        margin: the largest distance kept from the plane (L), > 0, per pair or one for all.
+        depth: the height behind the plane below which a vertex is not tested, and to which
+            a tested one may come (L), >= 0, per pair or one for all.
+        margin: see above (L), > 0; default ``depth`` (or 1e-12 where ``depth`` is 0).
 
     Returns:
         (n,) fractions in [0, 1]: 1 where the vertex does not leave through the triangle within
-        the step, or is not behind its plane at the start.
+        the step, or is not more than ``depth`` behind its plane at the start.
     """
     x0 = _blocks(p0, tri0, 1)
     x1 = _blocks(p1, tri1, 1)
     if x0.shape != x1.shape:
         raise ValueError(f"positions at time 0 {x0.shape} and 1 {x1.shape} differ in shape")
-    margin = np.broadcast_to(np.asarray(margin, dtype=FLOAT), (x0.shape[0],)).copy()
+    n = x0.shape[0]
+    depth = np.broadcast_to(np.asarray(depth, dtype=FLOAT), (n,)).copy()
+    if np.any(~(depth >= 0.0)):
+        raise ValueError("depths must be >= 0")
+    margin = np.where(depth > 0.0, depth, 1e-12) if margin is None else margin
+    margin = np.broadcast_to(np.asarray(margin, dtype=FLOAT), (n,)).copy()
     if np.any(~(margin > 0.0)):
         raise ValueError("margins must be > 0")
-    return _exit_caps(x0, x1, margin)
+    return _exit_caps(x0, x1, depth, margin)
