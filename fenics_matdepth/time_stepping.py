@@ -362,6 +362,13 @@ def solve_time_steps(
     engine.records.append(engine.record(0, t, 0.0, initial, 0, 0.0))
     impacts.hand_incremental_potential(problem, integrator, strain_energy, external_work)
     engine.contact_force = impacts.default_contact_force(integrator, contact_force, problem)
-    with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
-        engine.step_contact = midpoint
-        return engine.run()
+    collisions = engine.collisions
+    if collisions is not None:  # the exit cap's default: on in time steps
+        collisions.time_stepping = True
+    try:
+        with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
+            engine.step_contact = midpoint
+            return engine.run()
+    finally:
+        if collisions is not None:
+            collisions.time_stepping = False

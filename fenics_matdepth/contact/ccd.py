@@ -53,7 +53,10 @@ class ContinuousCollision:
             length (reference configuration), > 0.
         exits: also cap a vertex inside a body from leaving through the body's far side
             (`fenics_matdepth.geometry.ccd`, "pass-through"); False: vertices inside a body
-            are free to leave through any face.
+            are free to leave through any face; None (default): on while
+            ``solve_time_steps`` runs (:attr:`time_stepping`), off otherwise (in load steps
+            the entry caps hold a fold, and the exit cap stalled Newton on the knee's skin
+            fold, docs/dynamics.md).
 
     Attributes:
         entry: (num boundary triangles,) entry tolerance of each triangle's pairs (L).
@@ -66,7 +69,10 @@ class ContinuousCollision:
     """
 
     def __init__(
-        self, surface: ContactSurface, entry_fraction: float = ENTRY_FRACTION, exits: bool = True
+        self,
+        surface: ContactSurface,
+        entry_fraction: float = ENTRY_FRACTION,
+        exits: bool | None = None,
     ):
         if not entry_fraction > 0.0:
             raise ValueError(
@@ -75,7 +81,9 @@ class ContinuousCollision:
             )
         comm = self.comm = surface.comm
         self.entry_fraction = float(entry_fraction)
-        self.exits = bool(exits)
+        self.exits = exits
+        #: Whether ``solve_time_steps`` is running (it sets this): the exit cap's default.
+        self.time_stepping = False
         n_owned = surface.owned_dof_count() // 3
         self._n_owned_dofs = 3 * n_owned
         own_tri = surface.global_vertex[surface.tri]
@@ -124,6 +132,12 @@ class ContinuousCollision:
         owner = np.full(self.vertices.size, m, dtype=INDEX)
         np.minimum.at(owner, tri.ravel(), np.repeat(np.arange(m, dtype=INDEX), 3))
         self.vertex_owner = owner
+
+    @property
+    def exits_active(self) -> bool:
+        """Whether queries apply the exit cap now (``exits``, or by default while time
+        stepping)."""
+        return self.time_stepping if self.exits is None else bool(self.exits)
 
     @property
     def passing_through(self) -> bool:
@@ -179,7 +193,7 @@ class ContinuousCollision:
             best, capped, kind, i, j = sweep_caps(
                 x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
                 self.edge_owner, self.entry if entry_scale == 1.0 else entry_scale * self.entry,
-                self._owned_tri[qa], qb, self.exits,
+                self._owned_tri[qa], qb, self.exits_active,
             )  # fmt: skip
             which = (int(kind), int(i), int(j))
         best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)
