@@ -63,6 +63,8 @@ class ContinuousCollision:
         queries: number of :meth:`step_fraction` calls so far.
         seconds: wall time spent in them (s).
         capped: pairs capped below 1 by the last query (over all ranks).
+        exits: the ``exits`` argument (settable); :attr:`exits_active` says whether it applies.
+        time_stepping: True while ``solve_time_steps`` runs (the exit cap's default).
         last_pair: ``(kind, i, j)`` of the pair that set the last cap below 1: kind 0 a
             vertex and a triangle, 1 two edges, 2 a vertex leaving through the far side of a
             body (a vertex and a triangle), in the boundary numbering; None otherwise.
@@ -82,8 +84,7 @@ class ContinuousCollision:
         comm = self.comm = surface.comm
         self.entry_fraction = float(entry_fraction)
         self.exits = exits
-        #: Whether ``solve_time_steps`` is running (it sets this): the exit cap's default.
-        self.time_stepping = False
+        self.time_stepping = False  # set by solve_time_steps while it runs
         n_owned = surface.owned_dof_count() // 3
         self._n_owned_dofs = 3 * n_owned
         own_tri = surface.global_vertex[surface.tri]
