@@ -24,22 +24,29 @@ from fenics_matdepth.geometry.ccd import sweep_caps
 from fenics_matdepth.meshing import box_tetrahedra
 
 
-def boundary_faces(cells: np.ndarray) -> np.ndarray:
-    """The faces of the tetrahedra that belong to one tetrahedron only."""
+def boundary_faces(x: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The faces of the tetrahedra that belong to one tetrahedron only, oriented outwards
+    (their normal away from the tetrahedron's fourth vertex: the exit caps need the sides)."""
     faces = np.concatenate(
         [cells[:, [1, 2, 3]], cells[:, [0, 3, 2]], cells[:, [0, 1, 3]], cells[:, [0, 2, 1]]]
     )
+    opposite = np.concatenate([cells[:, 0], cells[:, 1], cells[:, 2], cells[:, 3]])
     _, first, count = np.unique(
         np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True
     )
-    return faces[first[count == 1]]
+    keep = first[count == 1]
+    faces, opposite = faces[keep], opposite[keep]
+    a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), x[opposite] - a) > 0.0
+    faces[inward] = faces[inward][:, [0, 2, 1]]
+    return faces
 
 
 def main(n: int) -> None:
     x1, c1 = box_tetrahedra((n, n, 3), (0.0, 0.0, 0.0), (1.0, 1.0, 0.1))
     x2, c2 = box_tetrahedra((n, n, 3), (0.01, 0.02, 0.11), (1.0, 1.0, 0.1))
     x = np.vstack((x1, x2))
-    faces = boundary_faces(np.vstack((c1, c2 + x1.shape[0])))
+    faces = boundary_faces(x, np.vstack((c1, c2 + x1.shape[0])))
     used = np.unique(faces)
     renumber = np.full(x.shape[0], -1, dtype=np.int64)
     renumber[used] = np.arange(used.size)
@@ -61,24 +68,27 @@ def main(n: int) -> None:
     cells6 = np.ascontiguousarray(np.hstack((tri, tri + nb)))
     points = np.vstack((x0, x1_))
 
-    def query():
+    def query(exits):
         tic = time.perf_counter()
         tree = AABBTree(points, cells6)
         lo, hi = element_boxes(points, cells6)
         qa, qb = tree.query_boxes(lo, hi)
-        out = sweep_caps(x0, x1_, tri, tri_edge, edges, vertex_owner, edge_owner, entry, qa, qb)
+        out = sweep_caps(
+            x0, x1_, tri, tri_edge, edges, vertex_owner, edge_owner, entry, qa, qb, exits
+        )
         return time.perf_counter() - tic, out, qa.size
 
-    query()
-    seconds = []
-    for _ in range(3):
-        t, out, pairs = query()
-        seconds.append(t)
-    print(
-        f"{tri.shape[0]} boundary triangles, {nb} vertices, {edges.shape[0]} edges; "
-        f"{pairs} overlapping swept-box triangle pairs, {out[1]} capped primitive pairs, "
-        f"cap {out[0]:.4f}; query {min(seconds):.3f} s (best of 3)"
-    )
+    for exits in (True, False):  # with and without the exit caps (pass-through)
+        query(exits)
+        seconds = []
+        for _ in range(3):
+            t, out, pairs = query(exits)
+            seconds.append(t)
+        print(
+            f"exits={exits}: {tri.shape[0]} boundary triangles, {nb} vertices, "
+            f"{edges.shape[0]} edges; {pairs} overlapping swept-box triangle pairs, {out[1]} "
+            f"capped primitive pairs, cap {out[0]:.4f}; query {min(seconds):.3f} s (best of 3)"
+        )
 
 
 if __name__ == "__main__":

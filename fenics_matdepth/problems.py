@@ -315,7 +315,9 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._energy = dolfinx.fem.form(energy)
         self.assembler.energy_form = self._energy
         self.snes.setObjective(self._objective)
-        self.snes.setLineSearchPreCheck(self._check_direction)
+        # the pre-check that also caps the step by the collision detection (not the direction
+        # check alone, which dropped it from every time step given strain_energy=)
+        self.snes.setLineSearchPreCheck(self._precheck)
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Solve from the current ``u``; ``u`` holds the last iterate afterwards (collective).

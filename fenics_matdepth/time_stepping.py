@@ -14,6 +14,7 @@ import numpy as np
 import ufl
 
 from fenics_matdepth import impacts
+from fenics_matdepth.contact.ccd import pass_through_message
 from fenics_matdepth.results import Solvable, SolveResult, TimeStep
 from fenics_matdepth.stepping import StepEngine, write_state
 
@@ -114,9 +115,27 @@ class _TimeSteps(StepEngine):
                 )
                 self._start(this_dt)
                 fraction = self.collisions.step_fraction(u_prev, u)
+            if fraction < 1.0 and this_dt <= self.min_dt and self.collisions.passing_through:
+                self._stop_passing_through()
             if fraction < 1.0:
                 # Newton starts on this side of any surface the prediction would jump through
                 u[:] = u_prev + fraction * (u - u_prev)
+
+    def _stop_passing_through(self) -> None:
+        """Give up: even the smallest step's prediction takes a vertex out of a body through
+        its far side (the penalty is too weak for the layer); the last state is restored."""
+        t = self.t
+        self.integrator.restore()
+        if self.set_time is not None:
+            self.set_time(t)
+        if self.contact is not None:
+            self.contact.update()
+        kinetic = self.integrator.kinetic_energy() if self.integrator.rho is not None else np.nan
+        cause = pass_through_message(self.contact, kinetic) if self.contact is not None else ""
+        raise RuntimeError(
+            f"time stepping stopped at t = {t:.6g}, dt = {self.this_dt:.3g} (min_dt "
+            f"{self.min_dt:.3g}). {cause}"
+        )
 
     def check(self, result: SolveResult) -> str | None:
         """Why a converged step is rejected by the step controller, or None (at ``min_dt``
@@ -357,6 +376,13 @@ def solve_time_steps(
     engine.records.append(engine.record(0, t, 0.0, initial, 0, 0.0))
     impacts.hand_incremental_potential(problem, integrator, strain_energy, external_work)
     engine.contact_force = impacts.default_contact_force(integrator, contact_force, problem)
-    with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
-        engine.step_contact = midpoint
-        return engine.run()
+    collisions = engine.collisions
+    if collisions is not None:  # the exit cap's default: on in time steps
+        collisions.time_stepping = True
+    try:
+        with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
+            engine.step_contact = midpoint
+            return engine.run()
+    finally:
+        if collisions is not None:
+            collisions.time_stepping = False

@@ -150,6 +150,7 @@ def test_step_fraction_is_the_same_on_any_number_of_ranks():
     brute = sweep_caps(
         x0, x1, collisions.tri, collisions.tri_edge, collisions.edges,
         collisions.vertex_owner, collisions.edge_owner, collisions.entry, a, b,
+        collisions.exits_active,
     )[0]  # fmt: skip
     assert fraction == brute, (fraction, brute)
     entry = collisions.entry.min()

@@ -32,9 +32,9 @@ from fenics_matdepth._mpi import allgather_rows
 from fenics_matdepth.contact.surface import ContactSurface
 from fenics_matdepth.geometry.boxes import element_boxes
 from fenics_matdepth.geometry.bvh import AABBTree
-from fenics_matdepth.geometry.ccd import sweep_caps
+from fenics_matdepth.geometry.ccd import PASS_THROUGH, sweep_caps
 
-__all__ = ["ENTRY_FRACTION", "ContinuousCollision"]
+__all__ = ["ENTRY_FRACTION", "ContinuousCollision", "pass_through_message"]
 
 #: Default entry tolerance, as a fraction of the local boundary edge length (the smaller of
 #: the two triangles' mean reference edge lengths): how far a separated pair may go past its
@@ -51,17 +51,31 @@ class ContinuousCollision:
             (its owned boundary triangles, outward oriented, and vertex numbering).
         entry_fraction: entry tolerance per pair, as a fraction of the local boundary edge
             length (reference configuration), > 0.
+        exits: also cap a vertex inside a body from leaving through the body's far side
+            (`fenics_matdepth.geometry.ccd`, "pass-through"); False: vertices inside a body
+            are free to leave through any face; None (default): on while
+            ``solve_time_steps`` runs (:attr:`time_stepping`), off otherwise (in load steps
+            the entry caps hold a fold, and the exit cap stalled Newton on the knee's skin
+            fold, docs/dynamics.md).
 
     Attributes:
         entry: (num boundary triangles,) entry tolerance of each triangle's pairs (L).
         queries: number of :meth:`step_fraction` calls so far.
         seconds: wall time spent in them (s).
         capped: pairs capped below 1 by the last query (over all ranks).
+        exits: the ``exits`` argument (settable); :attr:`exits_active` says whether it applies.
+        time_stepping: True while ``solve_time_steps`` runs (the exit cap's default).
         last_pair: ``(kind, i, j)`` of the pair that set the last cap below 1: kind 0 a
-            vertex and a triangle, 1 two edges, in the boundary numbering; None otherwise.
+            vertex and a triangle, 1 two edges, 2 a vertex leaving through the far side of a
+            body (a vertex and a triangle), in the boundary numbering; None otherwise.
     """
 
-    def __init__(self, surface: ContactSurface, entry_fraction: float = ENTRY_FRACTION):
+    def __init__(
+        self,
+        surface: ContactSurface,
+        entry_fraction: float = ENTRY_FRACTION,
+        exits: bool | None = None,
+    ):
         if not entry_fraction > 0.0:
             raise ValueError(
                 f"entry_fraction must be > 0 (a fraction of the boundary edge length), got "
@@ -69,6 +83,8 @@ class ContinuousCollision:
             )
         comm = self.comm = surface.comm
         self.entry_fraction = float(entry_fraction)
+        self.exits = exits
+        self.time_stepping = False  # set by solve_time_steps while it runs
         n_owned = surface.owned_dof_count() // 3
         self._n_owned_dofs = 3 * n_owned
         own_tri = surface.global_vertex[surface.tri]
@@ -119,6 +135,18 @@ class ContinuousCollision:
         self.vertex_owner = owner
 
     @property
+    def exits_active(self) -> bool:
+        """Whether queries apply the exit cap now (``exits``, or by default while time
+        stepping)."""
+        return self.time_stepping if self.exits is None else bool(self.exits)
+
+    @property
+    def passing_through(self) -> bool:
+        """Whether the last query's cap (below 1) was set by a vertex leaving a body through
+        its far side (the exit cap), not by an entry."""
+        return self.last_pair is not None and self.last_pair[0] == PASS_THROUGH
+
+    @property
     def num_triangles(self) -> int:
         """Number of boundary triangles (all ranks)."""
         return int(self.tri.shape[0])
@@ -166,7 +194,7 @@ class ContinuousCollision:
             best, capped, kind, i, j = sweep_caps(
                 x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
                 self.edge_owner, self.entry if entry_scale == 1.0 else entry_scale * self.entry,
-                self._owned_tri[qa], qb,
+                self._owned_tri[qa], qb, self.exits_active,
             )  # fmt: skip
             which = (int(kind), int(i), int(j))
         best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)
@@ -176,3 +204,32 @@ class ContinuousCollision:
         self.queries += 1
         self.seconds += time.perf_counter() - tic
         return float(best_all)
+
+
+def pass_through_message(contact, kinetic_energy: float) -> str:
+    """Why a surface held against a body's far side cannot go on, and the penalty that would
+    stop it: the contact stores ``E_c`` at the overlap reached (it is largest about there: a
+    layer's depth peaks at its middle), against the kinetic energy ``K``; the energy stored at
+    a given overlap scales with the penalty, so a penalty about ``(K + E_c) / E_c`` times
+    higher would store all of it (collective).
+
+    Args:
+        contact: the problem's :class:`~fenics_matdepth.ContactOperator`, updated at the state
+            reached.
+        kinetic_energy: the kinetic energy there (F L).
+    """
+    stored = contact.energy()
+    sentence = (
+        "A surface would pass through a body: a boundary vertex inside it would leave through "
+        "the body's far side within the smallest step, and the collision detection holds it "
+        f"there. The penalty cannot stop the motion within the layer: at this overlap the "
+        f"contact stores {stored:.3g} against a kinetic energy of {kinetic_energy:.3g}"
+    )
+    if stored > 0.0 and np.isfinite(kinetic_energy):
+        needed = contact.penalty * (kinetic_energy + stored) / stored
+        sentence += (
+            f"; a penalty of about {needed:.3g} (now {contact.penalty:.3g}; about 2 K / (A t^2) "
+            "for kinetic energy K, contact area A and layer thickness t) would, or a thicker "
+            "layer, or a slower impact"
+        )
+    return sentence + "."
