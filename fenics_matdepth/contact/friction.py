@@ -526,13 +526,13 @@ class FrictionMixin:
         """The share of the friction points whose tangential stiffness changed by more than a
         factor of 2 since the last :meth:`mark_stick_slip` (collective; 0 without friction).
 
-        A point that switches between stick (stiffness ``2 c / e``) and slip (``c / y``) changes the
-        Jacobian by a term of the rank of its slip directions, so this share says how far the
-        Jacobian has moved from the one factorised at the mark (the linear solver's
-        FRICTION_SWITCH_SHARE). Points whose stiffness stays below STIFFNESS_FLOOR times the
-        normal penalty's (``k w``; the pressure about 0) do not count. On points other than
-        the mark's (a new reference after :meth:`advance`, a new halo), or before any mark: 1
-        where some point's stiffness exceeds that floor, else 0.
+        A point that switches between stick (stiffness ``2 c / e``) and slip (``c / y``)
+        changes the Jacobian by a term of the rank of its slip directions, so this share says
+        how far the Jacobian has moved from the one factorised at the mark (the linear
+        solver's FRICTION_SWITCH_SHARE). Points whose stiffness stays below STIFFNESS_FLOOR
+        times the normal penalty's (``k w``; the pressure about 0) do not count. On points
+        other than the mark's (a new reference after :meth:`advance`, a new halo), or before
+        any mark: 1 where some point's stiffness exceeds that floor, else 0.
         """
         if self._friction_ref is None:
             return 0.0
