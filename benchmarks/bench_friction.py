@@ -8,7 +8,10 @@ friction's reference after each step). Each run prints its iterations per step a
 split per iteration; the last line is the ratio of the seconds per iteration with friction to
 those without. Target: at most 1.3. Prints figures; asserts nothing about time.
 
-Run: ``scripts/fenicsx python3 benchmarks/bench_friction.py`` (or under ``mpirun -n 2``).
+Run: ``scripts/fenicsx python3 benchmarks/bench_friction.py`` (or under ``mpirun -n 2``);
+``--switch-rule both --repeat 2`` runs the friction with and without the linear solver's
+factorisation once the stick/slip set moved (``linear_solver.FRICTION_SWITCH_SHARE``), in turn,
+for a comparison on the same machine state.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import ufl
 from bench_newton import build, clamp_and_move
 
 import fenics_matdepth as fm
+from fenics_matdepth import linear_solver
 
 TARGET_RATIO = 1.3
 PRESS, PULL = 0.02, 0.05
@@ -91,34 +95,53 @@ def main():
     parser.add_argument("--lower", type=int, nargs=3, default=(24, 24, 8))
     parser.add_argument("--upper", type=int, nargs=3, default=(16, 16, 8))
     parser.add_argument("--mu", type=float, default=0.3)
+    parser.add_argument(
+        "--switch-rule", choices=("on", "off", "both"), default="on",
+        help="the linear solver's factorisation once the stick/slip set moved "
+        "(linear_solver.FRICTION_SWITCH_SHARE); 'both' runs the friction twice, with it and "
+        "without, for a comparison on the same machine state",
+    )  # fmt: skip
+    parser.add_argument("--repeat", type=int, default=1, help="run the whole set this often")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     # a small model first: the kernels' compilation (or cache loading) is not measured
     run(comm, (4, 4, 2), (3, 3, 2), fm.Coulomb(args.mu))
-    out = {}
-    for name, friction in (("frictionless", None), (f"mu = {args.mu}", fm.Coulomb(args.mu))):
-        out[name] = r = run(comm, args.lower, args.upper, friction)
-        if comm.rank == 0:
-            split = ", ".join(f"{k} {v:.3f}" for k, v in r["split"].items())
-            print(
-                f"{name}: {r['tets']} tets, {comm.size} process(es); iterations per step "
-                f"{r['per_step']} (loads {r['loads']}), factorised {r['factorisations']}; "
-                f"{r['wall'] / r['iterations']:.3f} s "
-                f"({r['cpu'] / r['iterations']:.3f} s CPU) per iteration ({split} s/it)"
-            )
-            friction_keys = ("friction_dissipation", "stick_points", "slip_points")
-            last = {k: r["last"][k] for k in friction_keys if k in r["last"]}
-            if last:
-                print(f"  last step: {last}")
-    if comm.rank == 0:
-        a, b = out["frictionless"], out[f"mu = {args.mu}"]
-        for kind in ("wall", "cpu"):
-            ratio = (b[kind] / b["iterations"]) / (a[kind] / a["iterations"])
-            print(
-                f"friction / frictionless, {kind} seconds per Newton iteration: {ratio:.2f} "
-                f"(target <= {TARGET_RATIO}: ratio {ratio / TARGET_RATIO:.2f})"
-            )
-        print(f"Newton iterations: {b['iterations']} with friction, {a['iterations']} without")
+    share = linear_solver.FRICTION_SWITCH_SHARE
+    cases = [("frictionless", None, share)]
+    rules = {"on": [("", share)], "off": [(", switch rule off", np.inf)]}
+    rules["both"] = rules["on"] + rules["off"]
+    for suffix, value in rules[args.switch_rule]:
+        cases.append((f"mu = {args.mu}{suffix}", fm.Coulomb(args.mu), value))
+    for _ in range(args.repeat):
+        out = {}
+        for name, friction, value in cases:
+            linear_solver.FRICTION_SWITCH_SHARE = value
+            out[name] = r = run(comm, args.lower, args.upper, friction)
+            linear_solver.FRICTION_SWITCH_SHARE = share
+            if comm.rank == 0:
+                split = ", ".join(f"{k} {v:.3f}" for k, v in r["split"].items())
+                print(
+                    f"{name}: {r['tets']} tets, {comm.size} process(es); iterations per step "
+                    f"{r['per_step']} (loads {r['loads']}), factorised {r['factorisations']}; "
+                    f"{r['wall'] / r['iterations']:.3f} s "
+                    f"({r['cpu'] / r['iterations']:.3f} s CPU) per iteration ({split} s/it)"
+                )
+                friction_keys = ("friction_dissipation", "stick_points", "slip_points")
+                last = {k: r["last"][k] for k in friction_keys if k in r["last"]}
+                if last:
+                    print(f"  last step: {last}")
+        if comm.rank != 0:
+            continue
+        a = out["frictionless"]
+        for name, _, _ in cases[1:]:
+            b = out[name]
+            for kind in ("wall", "cpu"):
+                ratio = (b[kind] / b["iterations"]) / (a[kind] / a["iterations"])
+                print(
+                    f"{name} / frictionless, {kind} seconds per Newton iteration: {ratio:.2f} "
+                    f"(target <= {TARGET_RATIO}: ratio {ratio / TARGET_RATIO:.2f})"
+                )
+            print(f"Newton iterations: {b['iterations']} ({name}), {a['iterations']} without")
 
 
 if __name__ == "__main__":

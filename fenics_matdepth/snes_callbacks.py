@@ -320,13 +320,23 @@ class SNESCallbacks:
                 or rebuilt
                 or not self._may_keep
                 or no_longer_pays
+                or self._stick_slip_moved()
             )
             set_lag_preconditioner(self.snes, -2 if self._factorise else -1)
             if self._factorise:
                 self._factorisations += 1
                 self._kept_since_factorisation = 0
+                if hasattr(self.contact, "mark_stick_slip"):
+                    self.contact.mark_stick_slip()
             else:
                 self._kept_since_factorisation += 1
+
+    def _stick_slip_moved(self) -> bool:
+        """Whether the friction's stick/slip set moved too far since the last factorisation for
+        GMRES on it (``stick_slip_change`` above FRICTION_SWITCH_SHARE; collective; False
+        without friction)."""
+        change = getattr(self.contact, "stick_slip_change", None)
+        return change is not None and change() > linear_solver.FRICTION_SWITCH_SHARE
 
     def _count_kept_failure(self) -> None:
         """Count a GMRES failure on a kept factorisation. Once the first GMRES on a new

@@ -38,6 +38,10 @@ _POINT_KEYS = ("coef", "normal", "weight", "area")
 
 #: the default slip tolerance, as a fraction of the mean boundary edge length
 SLIP_TOL_FRACTION = 1e-3
+#: A friction point whose tangential stiffness stays below this fraction of the normal
+#: penalty's at its place (``k w``: its pressure is about 0) does not count in
+#: ``stick_slip_change``: its change does not move the Jacobian.
+STIFFNESS_FLOOR = 1e-2
 
 
 def _check_mu(value: typing.Any, what: str) -> float:
@@ -186,6 +190,7 @@ class FrictionMixin:
         self._friction_ref: _Reference | None = None
         self._friction_advanced: _Reference | None = None  # the lagged data of advance()
         self._friction_held: tuple[int, dict[str, np.ndarray]] | None = None
+        self._friction_mark: tuple | None = None  # the stick/slip set of mark_stick_slip()
         self.slip_tol = 0.0
         self._friction_tri_tag: np.ndarray | None = None
         if friction is not None and friction.cell_tags is not None:
@@ -465,6 +470,57 @@ class FrictionMixin:
                 float(ratio.max()) if ratio.size else 0.0, op=MPI.MAX
             ),
         }
+
+    # -- the stick/slip set, for the linear solver ---------------------------------------------
+
+    def _tangential_stiffness(self) -> np.ndarray:
+        """Each held friction point's tangential stiffness across its slip at the last update,
+        ``c f1(y) / y`` (``2 c / e`` at rest, ``c / y`` sliding: the Hessian's larger
+        eigenvalue), kept until the next update."""
+        if "friction_stiffness" not in self._cache:
+            y = self._friction_point_state()[0]
+            e = self.slip_tol
+            per_weight = np.where(y < e, 2.0 / e - y / e**2, 1.0 / np.maximum(y, e))
+            self._cache["friction_stiffness"] = self._friction_held_data()["weight"] * per_weight
+        return self._cache["friction_stiffness"]
+
+    def mark_stick_slip(self) -> None:
+        """Remember the friction's tangential stiffness at the last update (nothing without
+        friction): :meth:`stick_slip_change` measures from here. ``ContactProblem`` marks it
+        at each Jacobian it factorises."""
+        if self._friction_ref is None:
+            return
+        stiffness = self._tangential_stiffness()
+        self._friction_mark = (self._friction_ref, self.surface.refreshes, stiffness)
+
+    def stick_slip_change(self) -> float:
+        """The share of the friction points whose tangential stiffness changed by more than a
+        factor of 2 since the last :meth:`mark_stick_slip` (collective; 0 without friction).
+
+        A point that switches between stick (stiffness ``2 c / e``) and slip (``c / y``)
+        changes the Jacobian by a term of the rank of its slip directions, so this share says
+        how far the Jacobian has moved from the one factorised at the mark (the linear
+        solver's FRICTION_SWITCH_SHARE). Points whose stiffness stays below STIFFNESS_FLOOR
+        times the normal penalty's (``k w``; the pressure about 0) do not count. On points
+        other than the mark's (a new reference after :meth:`advance`, a new halo), or before
+        any mark: 1 where some point's stiffness exceeds that floor, else 0.
+        """
+        if self._friction_ref is None:
+            return 0.0
+        stiffness = self._tangential_stiffness()
+        floor = STIFFNESS_FLOOR * self.penalty * self._friction_held_data()["area"]
+        mark = self._friction_mark
+        same = (
+            mark is not None and mark[0] is self._friction_ref and mark[1] == self.surface.refreshes
+        )
+        if not self.comm.allreduce(same, op=MPI.LAND):
+            return float(self.comm.allreduce(bool(np.any(stiffness > floor)), op=MPI.LOR))
+        marked = mark[2]
+        changed = (np.maximum(stiffness, marked) > floor) & (
+            (stiffness > 2.0 * marked) | (marked > 2.0 * stiffness)
+        )
+        counts = self.comm.allreduce(np.array([np.count_nonzero(changed), stiffness.size]))
+        return float(counts[0] / max(counts[1], 1))
 
     def _friction_point_state(self) -> tuple[np.ndarray, ...]:
         """Per point of the held reference pairs: slip length, traction ratio, tangential
