@@ -486,9 +486,9 @@ NOMINAL_DT = 0.02
 
 def test_dropped_ball_bounces_and_the_controller_cuts_dt_at_impact():
     """A ball thrown down onto a clamped block under gravity, average-acceleration Newmark with
-    the end-of-step contact force and the energy-error control: dt is cut where the ball hits the block and grows back to the
-    nominal step in flight; the ball bounces back up nearly as fast as it came down and the
-    total energy (with the work of gravity) stays within 3 %."""
+    the end-of-step contact force and the energy-error control: dt is cut where the ball hits
+    the block and grows back to the nominal step in flight; the ball bounces back up nearly as
+    fast as it came down and the total energy (with the work of gravity) stays within 3 %."""
     # the end-of-step force, which gains at the impact (the control's case; with the default
     # discrete gradient the contact gains nothing and the control cuts less)
     history, vertical = _dropped_ball(
