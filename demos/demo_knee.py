@@ -63,7 +63,9 @@
 # `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's,
 # `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see
 # docs/measurements.md),
-# `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below);
+# `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below),
+# `MATDEPTH_KNEE_KEEP_LEFT=1` keeps each contact pair that left in the next Newton iteration's
+# Jacobian (active-set damping; below);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
@@ -124,6 +126,7 @@ fibre_toe = float(os.environ.get("MATDEPTH_KNEE_FIBRE_TOE", 0.04))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
+keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -435,6 +438,9 @@ problem = fm.ContactProblem(
     # what it costs here)
     ccd=os.environ.get("MATDEPTH_KNEE_CCD", "1") not in ("", "0"),
 )
+# MATDEPTH_KNEE_KEEP_LEFT=1: a pair that left the contact over a Newton step keeps its Hessian
+# in the next Jacobian (fm.contact.active_set.LaggedPairs; measured in docs/measurements.md)
+problem.assembler.keep_left_pairs(keep_left)
 # -
 
 # ### The augmented Lagrangian
@@ -1113,6 +1119,7 @@ summary = {
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
     "fibre_toe": fibre_toe,
+    "keep_left_pairs": keep_left,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "max_newton_iterations": max_newton,
