@@ -700,8 +700,10 @@ def add_frame(grid) -> None:
 # next step is scaled by the square root of the target over the last step's iterations (never
 # beyond 3°), and an attempt whose residual, over its last four iterations, falls too slowly to
 # converge within `stop_iterations` is stopped there and cut, instead of running on to the
-# iteration limit. It is off by default: up to 60° it changed little (docs/measurements.md),
-# and it has not been measured yet where it is meant to act, past 90°.
+# iteration limit; it stops at most one attempt of a step, the retries run to the limit (at
+# 105.5° the load path has a limit point, where cutting on does not help). It is off by
+# default: up to 60° it changed little (docs/measurements.md), and it has not been measured to
+# 150° yet.
 # After each converged step the writer hook measures, writes
 # the VTX files and renders an animation frame; `solve_load_steps` then saves the step to the
 # checkpoint. The measurements so far are kept in `knee_steps.json` next to it, so that a
