@@ -194,7 +194,8 @@ def main() -> None:
           f"{summary.get('target_iterations', 0)}, stop at {summary.get('stop_iterations')} "
           f"iterations; augmented Lagrangian to {summary.get('augmented_tol_h')} h, penalty "
           f"{summary.get('penalty')} MPa/mm; fibre toe "
-          f"{summary.get('fibre_toe', 0.0)}")  # fmt: skip
+          f"{summary.get('fibre_toe', 0.0)}; pairs that left kept in the Jacobian: "
+          f"{summary.get('keep_left_pairs', False)}")  # fmt: skip
     print(f"  reached {summary['reached_degrees']:.1f} deg, completed {summary['completed']}, "
           f"{len(steps)} steps, {sum(len(a) - 1 for a in steps)} cuts")  # fmt: skip
     print(f"  Newton iterations: {total} in all (failed attempts included), per step "

@@ -4,8 +4,9 @@ Runs ``demos/demo_knee.py`` in this process (serially) with a SNES monitor on it
 :class:`~fenics_matdepth.ContactProblem` that, after each Newton iteration ``x_k -> x_k+1``
 with the step ``d = x_k - x_k+1``, measures at ``x_k`` (the state is restored afterwards):
 
-- the contact set: the (triangle, tetrahedron) pairs whose intersection is not empty, and how
-  many entered and left over the step;
+- the contact set: the (triangle, tetrahedron) pairs whose intersection is not empty, how
+  many entered and left over the step, and how many of them flip-flopped: left over the last
+  step and entered again over this one, or the other way round;
 - whether the step was a full Newton step: ``|F(x_k) - J d| / |F(x_k)|`` is the linear solve's
   error for a full step (about 1e-10) and ``1 - lambda`` for a step shortened to ``lambda``;
 - the Jacobian against the residual: a central difference ``(F(x_k + h d) - F(x_k - h d)) / 2h``
@@ -90,6 +91,8 @@ class IterationDiagnosis:
         self.k_prev = -1
         self.solve = 0
         self.rows: list[dict] = []
+        # the pairs that entered and left over the last diagnosed step of this solve
+        self.last_change = (np.empty(0, np.int64), np.empty(0, np.int64))
 
     # -- helpers at the current state --------------------------------------------------
 
@@ -137,6 +140,7 @@ class IterationDiagnosis:
         if k == 0 or k != self.k_prev + 1 or self.x_prev is None or not np.isfinite(fnorm):
             if k == 0:
                 self.solve += 1
+            self.last_change = (np.empty(0, np.int64), np.empty(0, np.int64))
             self._remember(x, k)
             return
         try:
@@ -198,6 +202,11 @@ class IterationDiagnosis:
 
         entered = np.setdiff1d(pairs1, pairs0, assume_unique=True)
         left = np.setdiff1d(pairs0, pairs1, assume_unique=True)
+        flipped = (
+            np.intersect1d(entered, self.last_change[1]).size
+            + np.intersect1d(left, self.last_change[0]).size
+        )
+        self.last_change = (entered, left)
         changed_dofs = self._pair_dofs(np.concatenate((entered, left)))
         changed = np.zeros(free.size, dtype=bool)
         changed[changed_dofs] = True
@@ -227,6 +236,7 @@ class IterationDiagnosis:
             "active": int(pairs1.size),
             "entered": int(entered.size),
             "left": int(left.size),
+            "flipped": int(flipped),
             "fd_error": norm(fd_total - Jd) / max(norm(Jd), 1e-300),
             "fd_contact_error": norm(fd_contact - Hd) / max(norm(Hd), 1e-300),
             "e_contact": norm(e_contact) / f0,
@@ -243,7 +253,8 @@ class IterationDiagnosis:
         print(
             f"diag solve {row['solve']} it {k:3d} |F| {f0:.3e} -> {row['f1']:.3e} "
             f"(rate {row['rate']:.3f}, {step}) "
-            f"pairs {row['active']} +{row['entered']} -{row['left']} | FD/J d {row['fd_error']:.1e}"
+            f"pairs {row['active']} +{row['entered']} -{row['left']} ({flipped} back) | "
+            f"FD/J d {row['fd_error']:.1e}"
             f" (contact {row['fd_contact_error']:.1e}) | lin. error / |F_k|: contact "
             f"{row['e_contact']:.3f} (on changed pairs {row['e_contact_changed']:.3f}), bulk "
             f"{row['e_bulk']:.3f} (round fibre cells switched {row['e_bulk_fibre']:.3f}, "
@@ -262,7 +273,7 @@ def summarise(rows: list[dict]) -> None:
     }
     print(f"\ndiagnosis of {len(rows)} Newton iterations from a state on its Dirichlet values "
           f"({len(full)} full steps)")  # fmt: skip
-    keys = ("rate", "entered", "left", "fd_error", "fd_contact_error", "e_contact",
+    keys = ("rate", "entered", "left", "flipped", "fd_error", "fd_contact_error", "e_contact",
             "e_contact_changed", "e_bulk", "e_bulk_fibre", "fibre_switch",
             "share_changed")  # fmt: skip
     print("  means over each group:")

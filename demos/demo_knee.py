@@ -63,7 +63,9 @@
 # `MATDEPTH_KNEE_AL_RESET=1` starts every step's pressures from zero instead of the last step's,
 # `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see
 # docs/measurements.md),
-# `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below);
+# `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below),
+# `MATDEPTH_KNEE_KEEP_LEFT=1` keeps each contact pair that left in the next Newton iteration's
+# Jacobian (active-set damping; below);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
@@ -124,6 +126,7 @@ fibre_toe = float(os.environ.get("MATDEPTH_KNEE_FIBRE_TOE", 0.04))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
+keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -443,6 +446,9 @@ problem = fm.ContactProblem(
     # what it costs here)
     ccd=os.environ.get("MATDEPTH_KNEE_CCD", "1") not in ("", "0"),
 )
+# MATDEPTH_KNEE_KEEP_LEFT=1: a pair that left the contact over a Newton step keeps its Hessian
+# in the next Jacobian (fm.contact.active_set.LaggedPairs; measured in docs/measurements.md)
+problem.assembler.keep_left_pairs(keep_left)
 # -
 
 # ### The augmented Lagrangian
@@ -707,8 +713,10 @@ def add_frame(grid) -> None:
 # next step is scaled by the square root of the target over the last step's iterations (never
 # beyond 3°), and an attempt whose residual, over its last four iterations, falls too slowly to
 # converge within `stop_iterations` is stopped there and cut, instead of running on to the
-# iteration limit. It is off by default: up to 60° it changed little (docs/measurements.md),
-# and it has not been measured yet where it is meant to act, past 90°.
+# iteration limit; it stops at most one attempt of a step, the retries run to the limit (at
+# 105.5° the load path has a limit point, where cutting on does not help). It is off by
+# default: up to 60° it changed little (docs/measurements.md), and it has not been measured to
+# 150° yet.
 # After each converged step the writer hook measures, writes
 # the VTX files and renders an animation frame; `solve_load_steps` then saves the step to the
 # checkpoint. The measurements so far are kept in `knee_steps.json` next to it, so that a
@@ -1140,6 +1148,7 @@ summary = {
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
     "fibre_toe": fibre_toe,
+    "keep_left_pairs": keep_left,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "max_newton_iterations": max_newton,

@@ -359,6 +359,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
                     self.shifted_steps = self.ccd_caps = 0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
+                    self.assembler.start_solve()
                     # the load may have changed since
                     self._trial_valid, self._energy_value = False, np.nan
                     start.copy(self._x)

@@ -16,7 +16,15 @@ Abaqus's time incrementation do:
   ``window`` iterations predicts that it needs more than ``stop_iterations`` iterations in all
   (:class:`~fenics_matdepth.step_control.SlowConvergence`, Abaqus's logarithmic
   rate-of-convergence check); the step is then retried from the last converged state with
-  half the increment, as after any failure.
+  half the increment, as after any failure;
+- the rate test stops at most ``stops_per_step`` attempts of one step (default 1): the retries
+  after that run to the problem's own iteration limit. Where the retry at half the increment
+  is slow too, the increment is not what makes the step hard: the load path has a limit point
+  there (the equilibrium the steps follow ends, and the solution has to snap to another one:
+  Newton's method meets an indefinite Jacobian and needs tens of iterations). Measured on the
+  knee at 105.5 deg: with every attempt judged, the steps were cut to 0.01 deg and less and
+  the run stalled at 105.7 deg; the step that snaps converges in 32 iterations when let run
+  (docs/measurements.md).
 
 The rate test needs a :class:`~fenics_matdepth.ContactProblem` (its SNES convergence test
 consults it), as the problem or inside the wrappers
@@ -53,13 +61,18 @@ class SlowConvergence:
         first_check: the iteration from which the solve is judged.
         max_iterations: the iterations a solve may be predicted to need in all.
         window: the iterations over which the rate is measured.
+        stops_per_step: the solves it stops between two calls of :meth:`new_step`; the solves
+            after those are not judged (None: no limit).
 
     Attributes:
         message: why the last solve was stopped ("" if it was not).
         stops: solves stopped so far.
+        step_stops: solves stopped since the last :meth:`new_step`.
     """
 
-    def __init__(self, first_check: int, max_iterations: int, window: int):
+    def __init__(
+        self, first_check: int, max_iterations: int, window: int, stops_per_step: int | None = None
+    ):
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window}")
         if first_check < window:
@@ -71,10 +84,23 @@ class SlowConvergence:
             raise ValueError(
                 f"stop_iterations ({max_iterations}) must be at least the target ({first_check})"
             )
+        if stops_per_step is not None and stops_per_step < 1:
+            raise ValueError(f"stops_per_step must be >= 1 or None, got {stops_per_step}")
         self.first_check, self.max_iterations, self.window = first_check, max_iterations, window
+        self.stops_per_step = stops_per_step
         self.norms: list[float] = []
         self.message = ""
-        self.stops = 0
+        self.stops = self.step_stops = 0
+
+    def new_step(self) -> None:
+        """A new step begins: its attempts are judged again."""
+        self.step_stops = 0
+
+    @property
+    def judging(self) -> bool:
+        """Whether the coming solves are judged (fewer than ``stops_per_step`` stopped in
+        this step)."""
+        return self.stops_per_step is None or self.step_stops < self.stops_per_step
 
     def __call__(self, iteration: int, norm: float, target: float) -> bool:
         """Record the residual norm ``norm`` of Newton iteration ``iteration`` (0: the solve's
@@ -86,7 +112,7 @@ class SlowConvergence:
         # (iterations this test did not see, if any, do not count in a rate)
         self.norms.extend([math.nan] * (iteration - len(self.norms)))
         self.norms.append(float(norm))
-        if iteration < self.first_check or norm <= target:
+        if iteration < self.first_check or norm <= target or not self.judging:
             return False
         before, last = self.norms[iteration - self.window], self.norms[iteration - 1]
         rate = (norm / before) ** (1.0 / self.window) if before > 0.0 else math.inf
@@ -100,6 +126,7 @@ class SlowConvergence:
         if iteration + needed <= self.max_iterations:
             return False
         self.stops += 1
+        self.step_stops += 1
         more = f"{math.ceil(needed)} more" if math.isfinite(needed) else "no number of"
         self.message = (
             f"stopped after {iteration} Newton iterations by the step control's rate test: the "
@@ -123,12 +150,16 @@ class StepControl:
         window: the iterations over which the rate test measures the convergence rate.
         max_growth: the next step is at most this factor longer, and at least its inverse
             shorter, than the last converged one (a cut halves it regardless).
+        stops_per_step: the attempts of one step the rate test may stop; the later attempts of
+            that step run to the problem's own iteration limit (see the module). None: every
+            attempt is judged.
     """
 
     target_iterations: int = 10
     stop_iterations: int | None = None
     window: int = 4
     max_growth: float = 2.0
+    stops_per_step: int | None = 1
 
     def __post_init__(self):
         if self.target_iterations < 1:
@@ -152,7 +183,9 @@ class StepControl:
     def rate_test(self) -> SlowConvergence:
         """A new :class:`~fenics_matdepth.step_control.SlowConvergence` with this control's
         settings."""
-        return SlowConvergence(self.target_iterations, self.max_iterations, self.window)
+        return SlowConvergence(
+            self.target_iterations, self.max_iterations, self.window, self.stops_per_step
+        )
 
 
 def find_contact_problem(solver):

@@ -292,6 +292,8 @@ class _LoadSteps(StepEngine):
         return not (self.end - self.t) * np.sign(nominal) > 1e-12 * abs(nominal)
 
     def begin_step(self) -> None:
+        if self.rate_test is not None:
+            self.rate_test.new_step()
         self.t_next = self.t + self.dt
         if (self.end - self.t_next) * np.sign(self.nominal) < 0.0:
             self.t_next, self.dt = self.end, self.end - self.t

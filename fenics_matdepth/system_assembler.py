@@ -20,6 +20,7 @@ import numpy as np
 
 from fenics_matdepth._bulk import BulkMatrix
 from fenics_matdepth.contact import assembly
+from fenics_matdepth.contact.active_set import LaggedPairs
 from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.kinematics import CellDeterminants
 
@@ -111,6 +112,21 @@ class SystemAssembler:
         #: the proximal term of bodies held only by contact
         #: (:class:`~fenics_matdepth.free_bodies.ProximalTerm`, active while its k > 0), or None
         self.proximal = None
+        #: the pairs that left kept in the Jacobian for one iteration
+        #: (:class:`~fenics_matdepth.contact.active_set.LaggedPairs`), or None
+        self.lagged_pairs = None
+
+    def keep_left_pairs(self, keep: bool = True) -> None:
+        """Add to each Jacobian the last one's Hessian of every contact pair that has left
+        since (:class:`~fenics_matdepth.contact.active_set.LaggedPairs`: active-set damping,
+        for contact sets that flip-flop between Newton iterations; area integration), or
+        (``keep=False``) assemble the exact Jacobian again (the default)."""
+        self.lagged_pairs = LaggedPairs(self.contact) if keep else None
+
+    def start_solve(self) -> None:
+        """A Newton solve starts: its first Jacobian keeps no pair of an earlier one."""
+        if self.lagged_pairs is not None:
+            self.lagged_pairs.reset()
 
     def set_near_nullspace(self, modes: PETSc.NullSpace) -> None:
         """Set ``modes`` as the near-nullspace of the matrix, now and after every rebuild."""
@@ -174,6 +190,8 @@ class SystemAssembler:
             A.assemble()
         with self.watch("contact_assembly"):
             self.contact.add_jacobian(A)
+            if self.lagged_pairs is not None:
+                self.lagged_pairs.add_jacobian(A)
             if self.proximal is not None:
                 self.proximal.add_jacobian(A)
 

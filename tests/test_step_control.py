@@ -49,6 +49,26 @@ def test_rate_test_against_the_predicted_iterations():
     assert not test(0, 1.0, 1e-10) and test.message == ""
 
 
+def test_rate_test_stops_at_most_stops_per_step_solves_of_a_step():
+    """With stops_per_step 1 the rate test stops the first stagnating solve of a step and lets
+    the retries of that step run (a limit point of the load path: cutting on does not help);
+    a new step is judged again. None: every solve is judged."""
+    flat = [1.0, 0.5, 0.4] + [0.39] * 30
+    test = SlowConvergence(6, 30, 3, stops_per_step=1)
+    assert _judge(test, flat, 1e-10) == 6 and test.step_stops == 1
+    assert not test.judging
+    assert _judge(test, flat, 1e-10) is None  # the retry runs to its own limit
+    assert test.stops == 1
+    test.new_step()
+    assert test.judging and _judge(test, flat, 1e-10) == 6 and test.stops == 2
+    unlimited = SlowConvergence(6, 30, 3)
+    assert [_judge(unlimited, flat, 1e-10) for _ in range(3)] == [6, 6, 6]
+    assert fm.StepControl(10).rate_test().stops_per_step == 1  # the default
+    assert fm.StepControl(10, stops_per_step=None).rate_test().stops_per_step is None
+    with pytest.raises(ValueError, match="stops_per_step"):
+        fm.StepControl(10, stops_per_step=0)
+
+
 def test_step_scaling_and_bad_settings():
     """sqrt(target / iterations), between 1 / max_growth and max_growth; settings that cannot
     work are refused, naming the fix."""
@@ -124,3 +144,37 @@ def test_attempt_stopped_early_then_the_step_grows_back():
         a, b = reference.u.x.petsc_vec.norm(norm), problem.u.x.petsc_vec.norm(norm)
         assert abs(a - b) <= 1e-6 * a, (norm, a, b)
     assert min_det_F(problem.u) > 0.0
+
+
+def test_a_step_slow_at_half_its_increment_is_let_run():
+    """A rate test stopping every solve not converged at its 3rd iteration (target 3, stop 3,
+    window 1; the block indented 0.3 takes more at its first steps): with one stop a step (the
+    default) a stopped attempt's retry at half the increment runs to convergence (4
+    iterations), and the run ends with at most one cut a step; judging every attempt, a step
+    whose retries need more than 3 however small the increment is cut until load stepping gives
+    up: the stall the default avoids."""
+    comm = MPI.COMM_WORLD
+    for stops_per_step in (1, None):
+        problem = _indented_block(comm, "snes", 0.0)
+        g = problem.bcs[1].g
+
+        def set_load(t, g=g):
+            g.x.array.reshape(-1, 3)[:, 2] = -0.3 * t
+
+        recorder = _Recorder(problem)
+        control = fm.StepControl(3, stop_iterations=3, window=1, stops_per_step=stops_per_step)
+        settings = dict(num_steps=2, progress=False, step_control=control)
+        if stops_per_step == 1:
+            steps = fm.solve_load_steps(recorder, set_load, **settings)
+            assert np.isclose(steps[-1].load, 1.0)
+            assert all(s.cuts <= 1 for s in steps) and sum(s.cuts for s in steps) >= 1
+            stopped = [r for r in recorder.results if r.reason == SLOW_CONVERGENCE_REASON]
+            assert len(stopped) == sum(s.cuts for s in steps)
+            # the retries were not judged: some of them needed more than the 3 allowed
+            assert any(s.iterations > 3 for s in steps if s.cuts)
+        else:
+            with pytest.raises(RuntimeError, match=r"load stepping stopped.*rate test"):
+                fm.solve_load_steps(recorder, set_load, min_step=0.5 / 8, **settings)
+            stopped = [r for r in recorder.results if r.reason == SLOW_CONVERGENCE_REASON]
+            assert recorder.results[-1].reason == SLOW_CONVERGENCE_REASON and len(stopped) > 2
+        problem.destroy()

@@ -370,6 +370,12 @@ class ContactOperator(FrictionMixin):
         r = self._evaluate(False, True)
         return assembly.hessian_coo(self.surface, r["verts"], r["hess"])
 
+    def pair_hessians(self) -> tuple[np.ndarray, np.ndarray]:
+        """The evaluated pairs at the current state (area integration: the intersecting ones):
+        their held vertices (n, 7) and Hessians (n, 21, 21)."""
+        r = self._evaluate(False, True)
+        return r["verts"], r["hess"]
+
     def _pattern_in_held_numbering(self) -> np.ndarray:
         if self._held_keys is None:
             keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
