@@ -65,7 +65,9 @@
 # docs/measurements.md),
 # `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below),
 # `MATDEPTH_KNEE_KEEP_LEFT=1` keeps each contact pair that left in the next Newton iteration's
-# Jacobian (active-set damping; below);
+# Jacobian (active-set damping; below),
+# `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
+# (below; the contact fields of every step go to `knee_contact.xdmf` either way);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
 # is saved to `knee_checkpoint.npz` in the output folder; `python3 demo_knee.py --resume` (or
 # `MATDEPTH_KNEE_RESUME=1`) continues a stopped run from the last step saved there, with the
