@@ -329,12 +329,15 @@ def solve_time_steps(
             contact force is the one at the step's midpoint, so impacts pump no energy in; needs
             average-acceleration Newmark and a problem with an ``assembler``), or
             ``"endpoint"`` (the force at the end of the step, like every other internal
-            force). Default: ``"endpoint"``; ``"midpoint"`` removes the energy flat faces
-            meeting gain, but gains where a contact starts late in a step (``docs/dynamics.md``,
-            "Energy at impacts"). ``"discrete_gradient"``
+            force), or ``"discrete_gradient"``
             (:class:`~fenics_matdepth.impacts.DiscreteGradientContact`; average-acceleration
             Newmark or backward Euler, area integration, no friction): the contact force's work
-            over each step is the change of the contact energy, exactly.
+            over each step is the change of the contact energy, exactly, with linear and
+            angular momentum kept. Default: ``"discrete_gradient"`` with average-acceleration
+            Newmark and a plain-penalty area contact (no augmented Lagrangian, no friction),
+            ``"endpoint"`` otherwise; ``"midpoint"`` removes the energy flat faces meeting
+            gain, but gains where a contact starts late in a step (``docs/dynamics.md``,
+            "Energy at impacts").
 
     Returns:
         The initial state (step 0) and every converged step, in time order.
