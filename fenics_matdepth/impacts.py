@@ -227,8 +227,9 @@ def impact_failure_cause(
     )
     if contact_force == "endpoint" and _is_trapezoidal(integrator):
         sentence += (
-            'With contact_force="endpoint" (the default) average-acceleration Newmark creates '
-            'energy where flat faces meet; contact_force="midpoint" does not there. '
+            'With contact_force="endpoint" average-acceleration Newmark creates energy where '
+            'flat faces meet; contact_force="discrete_gradient" (the default where it applies) '
+            "does not. "
         )
     return sentence + (
         "A smaller penalty (propose_penalty's factor) softens the impact; a smaller min_dt "
