@@ -12,7 +12,7 @@ solution is the same, and once the contact set settles the Jacobian is the exact
 so the final iterations stay quadratic).
 
 :class:`~fenics_matdepth.ContactProblem` takes it with ``problem.assembler.keep_left_pairs()``
-(:meth:`~fenics_matdepth.system_assembler.SystemAssembler.keep_left_pairs`); what it measured on
+(``SystemAssembler.keep_left_pairs``); what it measured on
 the knee is in docs/measurements.md.
 """
 

@@ -54,7 +54,7 @@ class ContinuousCollision:
         exits: also cap a vertex inside a body from leaving through the body's far side
             (`fenics_matdepth.geometry.ccd`, "pass-through"); False: vertices inside a body
             are free to leave through any face; None (default): on while
-            ``solve_time_steps`` runs (:attr:`time_stepping`), off otherwise (in load steps
+            ``solve_time_steps`` runs (``time_stepping``), off otherwise (in load steps
             the entry caps hold a fold, and the exit cap stalled Newton on the knee's skin
             fold, docs/dynamics.md).
 

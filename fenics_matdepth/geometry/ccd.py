@@ -663,7 +663,7 @@ def exit_fraction(
         margin: see above (L), > 0; default ``depth`` (or 1e-12 where ``depth`` is 0).
 
     Returns:
-        (n,) fractions in [0, 1]: 1 where the vertex does not leave through the triangle within
+        (n,) fractions in [0, 1]; 1 where the vertex does not leave through the triangle within
         the step, or is not more than ``depth`` behind its plane at the start.
     """
     x0 = _blocks(p0, tri0, 1)
