@@ -46,11 +46,11 @@ GUARD_RTOL = 1e-8
 
 
 @njit(inline="always")
-def _pair_step(x0, x1, verts, p, du, w, r, ginv, omega):
+def _pair_step(x0, x1, verts, p, du, w, r, g, ginv, omega):
     """``du = x1 - x0`` and ``w = P du`` over pair p's 7 vertices, with ``r`` (7, 3) the
-    midpoint's positions about their mean, ``ginv`` (3, 3) the inverse of ``G`` and ``omega``
-    (3,) the removed rotation; returns ``(w . w, h^2)`` with h the largest extent of the
-    pair's box at ``x1``."""
+    midpoint's positions about their mean, ``g`` (3, 3) ``G``, ``ginv`` its inverse and
+    ``omega`` (3,) the removed rotation; returns ``(w . w, h^2)`` with h the largest extent of
+    the pair's box at ``x1``."""
     for a in range(7):
         v = verts[p, a]
         for k in range(3):
@@ -75,20 +75,20 @@ def _pair_step(x0, x1, verts, p, du, w, r, ginv, omega):
             r[a, k] -= centre
         ext = max(ext, hi - lo)
     # the rotation: G omega = sum_a r_a x w_a (w's mean is 0, so this is sum_a r_a x du_a)
-    g = np.zeros((3, 3), dtype=FLOAT)
-    ang = np.zeros(3, dtype=FLOAT)
+    g[:] = 0.0
+    ang0 = ang1 = ang2 = 0.0
     for a in range(7):
         rr = r[a, 0] * r[a, 0] + r[a, 1] * r[a, 1] + r[a, 2] * r[a, 2]
         for k in range(3):
             g[k, k] += rr
             for j in range(3):
                 g[k, j] -= r[a, k] * r[a, j]
-        ang[0] += r[a, 1] * w[3 * a + 2] - r[a, 2] * w[3 * a + 1]
-        ang[1] += r[a, 2] * w[3 * a] - r[a, 0] * w[3 * a + 2]
-        ang[2] += r[a, 0] * w[3 * a + 1] - r[a, 1] * w[3 * a]
+        ang0 += r[a, 1] * w[3 * a + 2] - r[a, 2] * w[3 * a + 1]
+        ang1 += r[a, 2] * w[3 * a] - r[a, 0] * w[3 * a + 2]
+        ang2 += r[a, 0] * w[3 * a + 1] - r[a, 1] * w[3 * a]
     _inverse3(g, ginv)
     for k in range(3):
-        omega[k] = ginv[k, 0] * ang[0] + ginv[k, 1] * ang[1] + ginv[k, 2] * ang[2]
+        omega[k] = ginv[k, 0] * ang0 + ginv[k, 1] * ang1 + ginv[k, 2] * ang2
     ww = 0.0
     for a in range(7):
         w[3 * a] -= omega[1] * r[a, 2] - omega[2] * r[a, 1]
@@ -131,10 +131,11 @@ def discrete_gradients(x0, x1, verts, e0, e1, gm, dg, coef):
     du = np.empty(21, dtype=FLOAT)
     w = np.empty(21, dtype=FLOAT)
     r = np.empty((7, 3), dtype=FLOAT)
+    g = np.empty((3, 3), dtype=FLOAT)
     ginv = np.empty((3, 3), dtype=FLOAT)
     omega = np.empty(3, dtype=FLOAT)
     for p in range(verts.shape[0]):
-        ww, h2 = _pair_step(x0, x1, verts, p, du, w, r, ginv, omega)
+        ww, h2 = _pair_step(x0, x1, verts, p, du, w, r, g, ginv, omega)
         c = 0.0
         if ww > GUARD_RTOL * GUARD_RTOL * h2:
             work = 0.0
@@ -161,24 +162,29 @@ def discrete_gradient_jacobians(x0, x1, verts, gm, g1, hm, coef, jac):
     w = np.empty(21, dtype=FLOAT)
     q = np.empty(21, dtype=FLOAT)
     r = np.empty((7, 3), dtype=FLOAT)
+    g = np.empty((3, 3), dtype=FLOAT)  # scratch: G, then the rotation derivative's vectors
     ginv = np.empty((3, 3), dtype=FLOAT)
     omega = np.empty(3, dtype=FLOAT)
     d = np.empty((21, 21), dtype=FLOAT)
     bw = np.empty((21, 3), dtype=FLOAT)
+    bg = np.empty((21, 3), dtype=FLOAT)
     for p in range(verts.shape[0]):
-        ww, h2 = _pair_step(x0, x1, verts, p, du, w, r, ginv, omega)
+        ww, h2 = _pair_step(x0, x1, verts, p, du, w, r, g, ginv, omega)
         for i in range(21):
             for j in range(21):
                 jac[p, i, j] = 0.5 * hm[p, i, j]
         if not ww > GUARD_RTOL * GUARD_RTOL * h2:
             continue
         c = coef[p]
-        _rotation_derivative(du, r, ginv, omega, d)
+        _rotation_derivative(du, r, ginv, omega, d, g)
         # the rotation modes' columns, e_k x r_a, for P = M - B G^-1 B^T
         for a in range(7):
             bw[3 * a, 0], bw[3 * a + 1, 0], bw[3 * a + 2, 0] = 0.0, -r[a, 2], r[a, 1]
             bw[3 * a, 1], bw[3 * a + 1, 1], bw[3 * a + 2, 1] = r[a, 2], 0.0, -r[a, 0]
             bw[3 * a, 2], bw[3 * a + 1, 2], bw[3 * a + 2, 2] = -r[a, 1], r[a, 0], 0.0
+        for i in range(21):  # B G^-1, once per pair
+            for k in range(3):
+                bg[i, k] = bw[i, 0] * ginv[0, k] + bw[i, 1] * ginv[1, k] + bw[i, 2] * ginv[2, k]
         for j in range(21):
             half_h_du = 0.0
             dtw = 0.0
@@ -190,33 +196,28 @@ def discrete_gradient_jacobians(x0, x1, verts, gm, g1, hm, coef, jac):
             for j in range(21):
                 # c P: c on the diagonal, -c / 7 between equal components of any two vertices,
                 # minus c B G^-1 B^T (the rotations)
-                rot = 0.0
-                for k in range(3):
-                    for m in range(3):
-                        rot += bw[i, k] * ginv[k, m] * bw[j, m]
-                proj = -rot
+                proj = -(bg[i, 0] * bw[j, 0] + bg[i, 1] * bw[j, 1] + bg[i, 2] * bw[j, 2])
                 if i % 3 == j % 3:
                     proj += (1.0 if i == j else 0.0) - 1.0 / 7.0
                 jac[p, i, j] += w[i] * q[j] + c * (proj + 0.5 * d[i, j])
 
 
 @njit(inline="always")
-def _rotation_derivative(du, r, ginv, omega, d):
-    """``d[:, 3 c + s] = d(P du)/dm_{c s}`` at fixed ``du``: with ``dL = e_s x du'_c`` (``du'``
-    the step less its mean) and ``dG = 2 r_{c s} I - e_s r_c^T - r_c e_s^T``, ``d omega =
-    G^-1 (dL - dG omega)`` and ``d w_a = -d omega x r_a - (delta_ac - 1/7) omega x e_s``."""
-    mean = np.zeros(3, dtype=FLOAT)
+def _rotation_derivative(du, r, ginv, omega, d, tmp):
+    """``d[:, 3 c + s] = d(P du)/dm_{c s}`` at fixed ``du`` (``tmp``: (3, 3) scratch): with
+    ``dL = e_s x du'_c`` (``du'`` the step less its mean) and ``dG = 2 r_{c s} I - e_s r_c^T -
+    r_c e_s^T``, ``d omega = G^-1 (dL - dG omega)`` and ``d w_a = -d omega x r_a - (delta_ac -
+    1/7) omega x e_s``."""
+    m0 = m1 = m2 = 0.0
     for a in range(7):
-        for k in range(3):
-            mean[k] += du[3 * a + k] / 7.0
-    e = np.zeros(3, dtype=FLOAT)
-    rhs = np.empty(3, dtype=FLOAT)
-    dom = np.empty(3, dtype=FLOAT)
-    oxe = np.empty(3, dtype=FLOAT)
+        m0 += du[3 * a] / 7.0
+        m1 += du[3 * a + 1] / 7.0
+        m2 += du[3 * a + 2] / 7.0
+    e, rhs, dom = tmp[0], tmp[1], tmp[2]
     for cv in range(7):
-        dp0 = du[3 * cv] - mean[0]
-        dp1 = du[3 * cv + 1] - mean[1]
-        dp2 = du[3 * cv + 2] - mean[2]
+        dp0 = du[3 * cv] - m0
+        dp1 = du[3 * cv + 1] - m1
+        dp2 = du[3 * cv + 2] - m2
         for s in range(3):
             e[:] = 0.0
             e[s] = 1.0
@@ -230,12 +231,12 @@ def _rotation_derivative(du, r, ginv, omega, d):
                 rhs[k] -= 2.0 * r[cv, s] * omega[k] - e[k] * rdo - r[cv, k] * omega[s]
             for k in range(3):
                 dom[k] = ginv[k, 0] * rhs[0] + ginv[k, 1] * rhs[1] + ginv[k, 2] * rhs[2]
-            oxe[0] = omega[1] * e[2] - omega[2] * e[1]
-            oxe[1] = omega[2] * e[0] - omega[0] * e[2]
-            oxe[2] = omega[0] * e[1] - omega[1] * e[0]
+            ox0 = omega[1] * e[2] - omega[2] * e[1]
+            ox1 = omega[2] * e[0] - omega[0] * e[2]
+            ox2 = omega[0] * e[1] - omega[1] * e[0]
             col = 3 * cv + s
             for a in range(7):
                 f = (1.0 if a == cv else 0.0) - 1.0 / 7.0
-                d[3 * a, col] = -(dom[1] * r[a, 2] - dom[2] * r[a, 1]) - f * oxe[0]
-                d[3 * a + 1, col] = -(dom[2] * r[a, 0] - dom[0] * r[a, 2]) - f * oxe[1]
-                d[3 * a + 2, col] = -(dom[0] * r[a, 1] - dom[1] * r[a, 0]) - f * oxe[2]
+                d[3 * a, col] = -(dom[1] * r[a, 2] - dom[2] * r[a, 1]) - f * ox0
+                d[3 * a + 1, col] = -(dom[2] * r[a, 0] - dom[0] * r[a, 2]) - f * ox1
+                d[3 * a + 2, col] = -(dom[0] * r[a, 1] - dom[1] * r[a, 0]) - f * ox2
