@@ -2,7 +2,7 @@
 # Debian root on first use when the host has no DOLFINx >= 0.9 (FENICSX_SUITE=sid for 0.11).
 FENICSX ?= scripts/fenicsx
 NP ?= 2
-PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200
+PYTEST ?= python3 -m pytest -p no:cacheprovider --color=no --timeout=1200 --durations=25
 PYTEST_ARGS ?=
 
 .PHONY: demo demo-bar demo-rods test test-serial test-mpi lint format bench env docs notebooks demo-snake demo-knee
