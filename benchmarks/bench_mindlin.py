@@ -60,6 +60,7 @@ def run(
     depth: float = DEPTH,
     press_steps: int = 2,
     factor: float = 10.0,
+    increments: int = 1,
     comm: MPI.Comm = MPI.COMM_WORLD,
 ) -> dict:
     """Press, then shift sideways from the pressed state once per ``shifts``; the figures.
@@ -134,7 +135,17 @@ def run(
         u.x.array[:] = u_pressed
         plate.value = (dx, 0.0, -press)
         tic = time.perf_counter()
-        result = problem.solve()
+        if increments == 1:
+            result = problem.solve()
+            iterations = result.iterations
+        else:  # load steps, the friction's reference advanced after each but the last
+            steps = fm.solve_load_steps(
+                problem, lambda t, dx=dx: setattr(plate, "value", (dx * t, 0.0, -press)),
+                num_steps=increments - 1, end=(increments - 1) / increments, progress=False,
+            )  # fmt: skip
+            plate.value = (dx, 0.0, -press)
+            result = problem.solve()  # measured before an advance() zeroes the slips
+            iterations = sum(r.iterations for r in steps) + result.iterations
         seconds = time.perf_counter() - tic
         tangential = -float(plate_force()[0])  # friction holds the hemisphere back
         total, stick = _point_areas(contact)
@@ -151,11 +162,14 @@ def run(
                 "c_vertices": _vertex_stick_share(contact, mesh) ** 0.5,
                 "c_traction": {n: traction_stick_radius(points, a, rings=n) for n in RINGS},
                 "c_theory": float(max(1.0 - ratio, 0.0) ** (1 / 3)),
-                "newton": result.iterations,
+                "newton": iterations,
                 "seconds": seconds,
                 "points": points,
             }
         )
+        if increments > 1:  # the pressed state the friction's reference again
+            u.x.array[:] = u_pressed
+            contact.advance()
     return out
 
 
@@ -282,19 +296,23 @@ def main():
         "--slip-tol", type=float, nargs="+", default=[1e-4],
         help="slip tolerances: each shift is solved with each (the press with the first)",
     )  # fmt: skip
+    parser.add_argument(
+        "--increments", type=int, default=1,
+        help="load steps per shift (the friction's reference advanced after each)",
+    )  # fmt: skip
     parser.add_argument("--save", help="save the friction points per shift to this .npz")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     for res in args.res:
         tic = time.perf_counter()
-        r = run(res, args.press, args.shifts, args.slip_tol)
+        r = run(res, args.press, args.shifts, args.slip_tol, increments=args.increments)
         if comm.rank == 0:
             print(
                 f"res {res}: {r['cells']} cells, press {args.press} ({r['newton_press']} Newton "
                 f"iterations), N = {r['N']:.4g} (mu N = {MU * r['N']:.4g}, sum of the friction "
                 f"points' bound {r['bound']:.4g}), a = {r['a']:.4f} from the contact area "
                 f"(Hertz from N: {r['a_hertz']:.4f}), a / h = {r['a'] / res:.1f}, slip_tol "
-                f"{args.slip_tol}"
+                f"{args.slip_tol}, {args.increments} load step(s) per shift"
             )
             for row in r["rows"]:
                 err = row["c_points"] / row["c_theory"] - 1 if row["c_theory"] > 0 else np.nan
