@@ -91,9 +91,14 @@ def run(
     ]
     penalty = fm.propose_penalty(mesh, YOUNGS, factor=factor)
     slip_tols = [slip_tol] if np.isscalar(slip_tol) else list(slip_tol)
+    first = slip_tols[0] or None  # 0: the default, Coulomb's slip_tol=None
     contact = fm.ContactOperator(
-        u, fm.material_depth(mesh), penalty=penalty, friction=fm.Coulomb(MU, slip_tol=slip_tols[0])
+        u, fm.material_depth(mesh), penalty=penalty, friction=fm.Coulomb(MU, slip_tol=first)
     )
+    default_tol = contact.slip_tol if first is None else None
+    slip_tols = [tol or default_tol for tol in slip_tols]
+    if None in slip_tols:
+        raise ValueError("slip_tol 0 (the default) must come first: it is the press's")
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs, energy=energy, petsc_options={"snes_rtol": 1e-8}
     )
@@ -294,7 +299,8 @@ def main():
     )
     parser.add_argument(
         "--slip-tol", type=float, nargs="+", default=[1e-4],
-        help="slip tolerances: each shift is solved with each (the press with the first)",
+        help="slip tolerances: each shift is solved with each (the press with the first; "
+        "0 first: Coulomb's default)",
     )  # fmt: skip
     parser.add_argument(
         "--increments", type=int, default=1,
