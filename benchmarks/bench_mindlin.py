@@ -17,11 +17,16 @@ area ``A`` (the quadrature weights of the friction points, both surfaces, so ``2
 the stick area ``A_stick`` (those of the points that slip less than the slip tolerance: the
 status the contact fields show), ``c / a = sqrt(A_stick / A)``; the same from the vertices'
 status field on the block's top face (the share of its contact vertices that stick; the
-refined mesh is about uniform there). Theory: ``(1 - T / (mu N))^(1/3)`` at the measured T.
+refined mesh is about uniform there); and c / a from the traction along the load, averaged
+over rings about the contact's centre (:func:`traction_stick_radius`: where the ratio of the
+x traction to ``mu p`` falls below 0.95 coming in from the edge; with 20 rings, and 10 and 30
+for the measure's own spread), which does not depend on the slip tolerance as the status
+does. Theory: ``(1 - T / (mu N))^(1/3)`` at the measured T.
 
 Run: ``scripts/fenicsx python3 benchmarks/bench_mindlin.py --res 0.5 [--press 1.0] [--shifts
-0.1 0.2 0.3 0.4]`` (61k cells at res 0.5, about 25 CPU minutes). Prints figures; asserts
-nothing.
+0.1 0.2 0.3 0.4] [--slip-tol 1e-3 1e-4] [--save prefix]`` (61k cells at res 0.5, about 5
+minutes for three shifts); each shift is solved once per slip tolerance; ``--save`` writes the
+friction points of every shift to ``prefix_res<res>.npz``. Prints figures; asserts nothing.
 """
 
 from __future__ import annotations
@@ -42,18 +47,20 @@ from meshes import hertz
 RADIUS, WIDTH, DEPTH = 8.0, 20.0, 20.0
 YOUNGS, POISSON = 200.0, 0.3
 MU = 0.3
+RINGS = (20, 10, 30)  # ring counts of the traction's stick radius: the first is the figure
 
 
 def run(
     res: float,
     press: float,
     shifts: list[float],
-    slip_tol: float,
+    slip_tol: float | list[float],
     radius: float = RADIUS,
     width: float = WIDTH,
     depth: float = DEPTH,
     press_steps: int = 2,
     factor: float = 10.0,
+    increments: int = 1,
     comm: MPI.Comm = MPI.COMM_WORLD,
 ) -> dict:
     """Press, then shift sideways from the pressed state once per ``shifts``; the figures.
@@ -83,9 +90,15 @@ def run(
         dolfinx.fem.dirichletbc(plate, top, V),
     ]
     penalty = fm.propose_penalty(mesh, YOUNGS, factor=factor)
+    slip_tols = [slip_tol] if np.isscalar(slip_tol) else list(slip_tol)
+    first = slip_tols[0] or None  # 0: the default, Coulomb's slip_tol=None
     contact = fm.ContactOperator(
-        u, fm.material_depth(mesh), penalty=penalty, friction=fm.Coulomb(MU, slip_tol=slip_tol)
+        u, fm.material_depth(mesh), penalty=penalty, friction=fm.Coulomb(MU, slip_tol=first)
     )
+    default_tol = contact.slip_tol if first is None else None
+    slip_tols = [tol or default_tol for tol in slip_tols]
+    if None in slip_tols:
+        raise ValueError("slip_tol 0 (the default) must come first: it is the press's")
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs, energy=energy, petsc_options={"snes_rtol": 1e-8}
     )
@@ -120,29 +133,134 @@ def run(
         ),
         "rows": [],
     }
-    for dx in shifts:
+    nodes = _node_coordinates(V)
+    for dx, tol in ((dx, tol) for dx in shifts for tol in slip_tols):
+        # the press used the first tolerance; the shift's stick/slip branch uses this one
+        contact.slip_tol = tol
         u.x.array[:] = u_pressed
         plate.value = (dx, 0.0, -press)
         tic = time.perf_counter()
-        result = problem.solve()
+        if increments == 1:
+            result = problem.solve()
+            iterations = result.iterations
+        else:  # load steps, the friction's reference advanced after each but the last
+            steps = fm.solve_load_steps(
+                problem, lambda t, dx=dx: setattr(plate, "value", (dx * t, 0.0, -press)),
+                num_steps=increments - 1, end=(increments - 1) / increments, progress=False,
+            )  # fmt: skip
+            plate.value = (dx, 0.0, -press)
+            result = problem.solve()  # measured before an advance() zeroes the slips
+            iterations = sum(r.iterations for r in steps) + result.iterations
         seconds = time.perf_counter() - tic
         tangential = -float(plate_force()[0])  # friction holds the hemisphere back
         total, stick = _point_areas(contact)
         ratio = tangential / (MU * normal_force)
+        points = _point_profile(contact, nodes, _node_coordinates(V, u))
         out["rows"].append(
             {
                 "dx": dx,
+                "slip_tol": tol,
                 "T": tangential,
                 "ratio": ratio,
                 "ratio_bound": tangential / out["bound"],
                 "c_points": float(np.sqrt(stick / total)),
                 "c_vertices": _vertex_stick_share(contact, mesh) ** 0.5,
+                "c_traction": {n: traction_stick_radius(points, a, rings=n) for n in RINGS},
                 "c_theory": float(max(1.0 - ratio, 0.0) ** (1 / 3)),
-                "newton": result.iterations,
+                "newton": iterations,
                 "seconds": seconds,
+                "points": points,
             }
         )
+        if increments > 1:  # the pressed state the friction's reference again
+            u.x.array[:] = u_pressed
+            contact.advance()
     return out
+
+
+def traction_stick_radius(
+    points: dict[str, np.ndarray], a: float, rings: int = 20, level: float = 0.95
+) -> float:
+    """The stick radius over ``a`` from the traction along the load, averaged over rings.
+
+    Each friction point's tangential force is taken along x with the sign of its body's total
+    (so both surfaces count the traction that resists the shift); over rings of width
+    ``a / rings`` about the contact's centre (the points' centroid weighted by their bound),
+    the ratio ``sum q_x / sum mu p w``. In Mindlin's solution that ratio is
+    ``1 - sqrt((c^2 - r^2) / (a^2 - r^2))`` inside the stick zone and 1 outside: the radius
+    where it last falls below ``level`` coming in from the edge (linear between the rings'
+    middles) is c (0.95 places Mindlin's own profile within 0.3 % of c). Unlike a point's
+    status (its slip below the slip tolerance), this does not count as slipping the stick
+    zone's points whose discrete creep exceeds the tolerance in some other direction: such
+    creep, in varying directions, makes ``|t_T|`` reach ``mu p`` while the traction along the
+    load stays below it on average.
+
+    Args:
+        points: the friction points of ``_point_profile``: ``x``, ``weight``, ``force``,
+            ``body``.
+        a: the contact radius.
+        rings: the number of rings over ``[0, a]``.
+        level: the traction ratio that marks the edge of the stick zone.
+
+    Returns:
+        c / a.
+    """
+    x, weight, force, body = (points[k] for k in ("x", "weight", "force", "body"))
+    sign = np.zeros(len(weight))
+    for b in np.unique(body):
+        mine = body == b
+        sign[mine] = np.sign(force[mine, 0].sum())
+    centre = (weight[:, None] * x).sum(axis=0) / weight.sum()
+    r = np.hypot(x[:, 0] - centre[0], x[:, 1] - centre[1])
+    ring = np.minimum((r / a * rings).astype(int), rings)  # beyond a: an extra ring, unused
+    q = np.bincount(ring, force[:, 0] * sign, minlength=rings + 1)[:rings]
+    bound = np.bincount(ring, weight, minlength=rings + 1)[:rings]
+    profile = np.where(bound > 0, q / np.where(bound > 0, bound, 1.0), 1.0)
+    middle = (np.arange(rings) + 0.5) / rings
+    below = np.flatnonzero(profile < level)
+    if below.size == 0:
+        return 0.0
+    j = below[-1]
+    if j == rings - 1:
+        return 1.0
+    step = (level - profile[j]) / (profile[j + 1] - profile[j])
+    return float(middle[j] + step * (middle[j + 1] - middle[j]))
+
+
+def _node_coordinates(V, u=None) -> np.ndarray:
+    """The coordinates of every node by its global number, reference or moved by ``u``
+    (gathered to all ranks)."""
+    imap = V.dofmap.index_map
+    n = imap.size_local
+    X = np.zeros((imap.size_global, 3))
+    x = V.tabulate_dof_coordinates()[:n]
+    if u is not None:
+        x = x + u.x.array.reshape(-1, 3)[:n]
+    X[imap.local_to_global(np.arange(n, dtype=np.int32))] = x
+    return V.mesh.comm.allreduce(X, op=MPI.SUM)
+
+
+def _point_profile(
+    contact: fm.ContactOperator, nodes: np.ndarray, moved: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Per friction point (gathered): its triangle point, reference ``X`` and current ``x``
+    (nq, 3), its area, friction bound ``mu p w``, slip length, traction ratio
+    ``|t_T| / (mu p)``, tangential force and slip vectors (on the triangle's side) and the
+    triangle's body."""
+    p = contact.friction_points()
+    bary, verts = p["coef"][:, :3], p["verts"][:, :3]
+    local = {
+        "X": np.einsum("qk,qkd->qd", bary, nodes[verts]),
+        "x": np.einsum("qk,qkd->qd", bary, moved[verts]),
+        "area": p["area"],
+        "weight": p["weight"],
+        "slip_length": p["slip_length"],
+        "ratio": p["ratio"],
+        "force": p["force"],
+        "slip": p["slip"],
+        "body": contact.body_of_vertex[p["verts"][:, 0]],
+    }
+    return {k: np.concatenate(contact.comm.allgather(v)) for k, v in local.items()}
 
 
 def _point_areas(contact: fm.ContactOperator) -> tuple[float, float]:
@@ -179,30 +297,50 @@ def main():
     parser.add_argument(
         "--shifts", type=float, nargs="+", default=[0.1, 0.2, 0.3, 0.4], help="sideways (L)"
     )
-    parser.add_argument("--slip-tol", type=float, default=1e-4)
+    parser.add_argument(
+        "--slip-tol", type=float, nargs="+", default=[1e-4],
+        help="slip tolerances: each shift is solved with each (the press with the first; "
+        "0 first: Coulomb's default)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--increments", type=int, default=1,
+        help="load steps per shift (the friction's reference advanced after each)",
+    )  # fmt: skip
+    parser.add_argument("--save", help="save the friction points per shift to this .npz")
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     for res in args.res:
         tic = time.perf_counter()
-        r = run(res, args.press, args.shifts, args.slip_tol)
+        r = run(res, args.press, args.shifts, args.slip_tol, increments=args.increments)
         if comm.rank == 0:
             print(
                 f"res {res}: {r['cells']} cells, press {args.press} ({r['newton_press']} Newton "
                 f"iterations), N = {r['N']:.4g} (mu N = {MU * r['N']:.4g}, sum of the friction "
                 f"points' bound {r['bound']:.4g}), a = {r['a']:.4f} from the contact area "
                 f"(Hertz from N: {r['a_hertz']:.4f}), a / h = {r['a'] / res:.1f}, slip_tol "
-                f"{args.slip_tol}"
+                f"{args.slip_tol}, {args.increments} load step(s) per shift"
             )
             for row in r["rows"]:
                 err = row["c_points"] / row["c_theory"] - 1 if row["c_theory"] > 0 else np.nan
+                c_t = row["c_traction"]
+                err_t = c_t[RINGS[0]] / row["c_theory"] - 1 if row["c_theory"] > 0 else np.nan
+                others = ", ".join(f"{c_t[n]:.4f} with {n}" for n in RINGS[1:])
                 print(
-                    f"  dx {row['dx']:.3f}: T = {row['T']:.4g}, T / mu N = {row['ratio']:.4f} "
+                    f"  dx {row['dx']:.3f}, slip_tol {row['slip_tol']:g}: T = {row['T']:.4g}, "
+                    f"T / mu N = {row['ratio']:.4f} "
                     f"(over the points' bound {row['ratio_bound']:.4f}); c / a: points "
                     f"{row['c_points']:.4f}, vertex status {row['c_vertices']:.4f}, Mindlin "
-                    f"{row['c_theory']:.4f} (points {err:+.1%}); {row['newton']} Newton "
-                    f"iterations, {row['seconds']:.1f} s"
+                    f"{row['c_theory']:.4f} (points {err:+.1%}); traction along the load "
+                    f"{c_t[RINGS[0]]:.4f} ({err_t:+.1%}; {RINGS[0]} rings, {others}); "
+                    f"{row['newton']} Newton iterations, {row['seconds']:.1f} s"
                 )
             print(f"  {time.perf_counter() - tic:.0f} s in all", flush=True)
+            if args.save:
+                arrays = {"N": r["N"], "a": r["a"]}
+                for i, row in enumerate(r["rows"]):
+                    arrays |= {f"{i}_{k}": v for k, v in row["points"].items()}
+                    arrays |= {f"{i}_row_{k}": row[k] for k in ("dx", "slip_tol", "T", "ratio")}
+                np.savez(f"{args.save}_res{res}.npz", **arrays)
 
 
 if __name__ == "__main__":

@@ -55,6 +55,10 @@
 # ({py:class}`fenics_matdepth.Coulomb`, {doc}`/friction`): the contact fields (pressure,
 # penetration, traction, slip, stick/slip status) then go to the XDMF file with every step,
 # and a last picture shows the status (`MATDEPTH_RODS_T_END` sets the end time);
+# `MATDEPTH_RODS_ARRAY=7x1` runs that array of rods (rows downhill x columns) with the full
+# scene's mesh sizes, `MATDEPTH_RODS_YOUNGS` sets the Young's modulus (Pa, default 20e3) and
+# `MATDEPTH_RODS_PENALTY_FACTOR` the penalty's factor on it (default 10; {doc}`/friction`,
+# "Demos", has the runs that use them);
 # `MATDEPTH_RODS_GAMMA=0.5 MATDEPTH_RODS_CONTACT_FORCE=discrete_gradient` steps with average
 # acceleration and the contact force whose work is the change of the contact energy
 # ({doc}`/dynamics`, "Energy at impacts").
@@ -117,6 +121,9 @@ if quick:
 else:
     geometry = rods.RodsGeometry(layers=6, foundation_size=0.02)
     t_end = 0.3  # s
+if os.environ.get("MATDEPTH_RODS_ARRAY"):  # e.g. "7x1": one column of the full scene's rows
+    rows, columns = (int(n) for n in os.environ["MATDEPTH_RODS_ARRAY"].lower().split("x"))
+    geometry = rods.RodsGeometry(rows=rows, columns=columns, layers=6, foundation_size=0.02)
 t_end = float(os.environ.get("MATDEPTH_RODS_T_END", t_end))
 friction_mu = float(os.environ.get("MATDEPTH_RODS_MU", "0"))
 domain, cell_tags = rods.rods_mesh(comm, geometry)
@@ -140,6 +147,7 @@ report(
 
 # +
 youngs_modulus, poisson_ratio, density = 20e3, 0.3, 1000.0  # Pa, -, kg/m^3
+youngs_modulus = float(os.environ.get("MATDEPTH_RODS_YOUNGS", youngs_modulus))
 gravity = np.array([0.0, 0.0, -9.81])  # m/s^2
 damping = 2.0  # 1/s
 mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(youngs_modulus, poisson_ratio)
@@ -196,7 +204,8 @@ incremental = integrator.incremental_energy(strain_energy - gravity_work, dampin
 
 depth = fm.material_depth(domain)
 depth.name = "material_depth"
-penalty = fm.propose_penalty(domain, youngs_modulus, factor=10.0, h=h)
+penalty_factor = float(os.environ.get("MATDEPTH_RODS_PENALTY_FACTOR", "10"))
+penalty = fm.propose_penalty(domain, youngs_modulus, factor=penalty_factor, h=h)
 friction = fm.Coulomb(friction_mu) if friction_mu > 0.0 else None
 contact = fm.ContactOperator(u, depth, penalty, friction=friction)
 use_energy = os.environ.get("MATDEPTH_RODS_ENERGY_LINE_SEARCH", "0") not in ("", "0")
