@@ -231,10 +231,12 @@ def test_thin_plate_too_fast_for_the_penalty_is_held_with_max_penalty():
         z = X_z + u.x.array[: 3 * n].reshape(-1, 3)[:, 2]
         return comm.allreduce(float(z[mask].min()) if mask.any() else np.inf, op=MPI.MIN)
 
-    steps = {}  # step number -> (t, height, total energy, penalty); a rewind overwrites
+    steps = {}  # step number -> (t, height, total energy, penalty) of the kept records
 
     def track(record):
         height = lowest(falling) - lowest(top)
+        for later in [k for k in steps if k >= record.step]:  # steps the rewind dropped
+            del steps[later]
         steps[record.step] = (record.t, height, record.total_energy, problem.contact.penalty)
         if problem.contact.penalty > proposed and record.step >= 4:
             raise fm.StopRequested("enough steps")
@@ -263,3 +265,14 @@ def test_thin_plate_too_fast_for_the_penalty_is_held_with_max_penalty():
         assert any("penalty is raised" in m for m in messages), messages
         print(f"penalty {proposed:.3g} -> {raised:.3g}; heights {np.round(heights, 4)}, "
               f"energies {np.round(energies, 4)} of {kinetic:.4g}")  # fmt: skip
+
+
+def test_max_penalty_needs_the_collision_detection():
+    """``max_penalty`` acts where the collision detection finds a pass-through: without it
+    (``ccd=False``) the option is refused with a message naming what it needs."""
+    problem, integrator, strain, *_ = _scene(MPI.COMM_WORLD, ccd=False)
+    with pytest.raises(ValueError, match="max_penalty needs the problem's collision detection"):
+        fm.solve_time_steps(
+            problem, integrator, DT, DT, strain_energy=strain, progress=False, max_penalty=1e6
+        )
+    problem.destroy()
