@@ -10,11 +10,20 @@ the total energy (kinetic + strain + contact) after the first step and its large
 
 Run: ``scripts/fenicsx python3 benchmarks/bench_truncated_impact.py [--speeds 30 50]
 [--schemes endpoint midpoint discrete_gradient] [--steps 5]``.
+
+``--trace T`` instead runs each speed with the default contact force to time T and prints
+every step: dt, truncations, cuts, Newton iterations, the cube's lowest point against the
+plate's top surface (its lowest point: the plate bends), the cube's mean nodal velocity, the
+smallest det F, the energies, then how the run ended (docs/dynamics.md, "What it does not
+do": ``--speeds 500 --trace 0.005 --factor 5900 --min-dt 1e-7`` is the cube at the penalty
+the stop names, ``--youngs 1e6 --trace 0.003 --min-dt 1e-7`` on stiff bodies;
+``--max-penalty`` passes ``solve_time_steps(max_penalty=...)``).
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 from mpi4py import MPI
 
@@ -37,11 +46,12 @@ def cube_over_plate(comm: MPI.Comm) -> dolfinx.mesh.Mesh:
     )
 
 
-def run(mesh, speed: float, scheme: str, steps: int, gain: float | None = None) -> dict:
+def setup(mesh, speed: float, youngs: float = E, factor: float = 10.0):
+    """The cube flying at the plate: (problem, integrator, strain energy density)."""
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     v = ufl.TestFunction(V)
-    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(E, NU)
+    mu, kappa = fm.materials.shear_bulk_from_youngs_poisson(youngs, NU)
     F_def = ufl.variable(ufl.Identity(3) + ufl.grad(u))
     psi = fm.materials.neo_hookean(F_def, mu, kappa)
     elastic = ufl.inner(ufl.diff(psi, F_def), ufl.grad(v)) * ufl.dx
@@ -52,7 +62,7 @@ def run(mesh, speed: float, scheme: str, steps: int, gain: float | None = None) 
         dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, facets), V)
     ]
     contact = fm.ContactOperator(
-        u, fm.material_depth(mesh), penalty=fm.propose_penalty(mesh, E, factor=10.0)
+        u, fm.material_depth(mesh), penalty=fm.propose_penalty(mesh, youngs, factor=factor)
     )
     integrator = fm.Newmark(u, DT, rho=RHO)
     residual = integrator.inertia(v) + elastic
@@ -63,6 +73,58 @@ def run(mesh, speed: float, scheme: str, steps: int, gain: float | None = None) 
         residual, u, contact, bcs=bcs, energy=integrator.incremental_energy(psi * ufl.dx),
         petsc_options_prefix="truncated_",
     )  # fmt: skip
+    return problem, integrator, psi
+
+
+def trace(mesh, speed: float, t_end: float, args) -> None:
+    """Print every step of the cube's flight to ``t_end`` and how the run ended."""
+    comm = mesh.comm
+    problem, integrator, psi = setup(mesh, speed, args.youngs, args.factor)
+    u = problem.u
+    V = u.function_space
+    n = V.dofmap.index_map.size_local
+    z = V.tabulate_dof_coordinates()[:n, 2]
+    cube, top = z > 0.01, np.isclose(z, 0.0)
+    count = comm.allreduce(int(cube.sum()))
+    cells = fm.kinematics.CellDeterminants(V)
+
+    def lowest(mask):
+        height = z + u.x.array[: 3 * n].reshape(-1, 3)[:, 2]
+        return comm.allreduce(float(height[mask].min()) if mask.any() else np.inf, op=MPI.MIN)
+
+    def line(r):
+        vz = integrator.v_prev.x.array[: 3 * n].reshape(-1, 3)[:, 2]
+        velocity = comm.allreduce(float(vz[cube].sum())) / count
+        det = cells.min(u)
+        if comm.rank == 0:
+            print(
+                f"step {r.step:3d} t {r.t:.4g} dt {r.dt:.3g} trunc {r.truncations} cuts {r.cuts} "
+                f"its {r.iterations:2d} lowest {lowest(cube) - lowest(top):+.5f} top "
+                f"{lowest(top):+.5f} velocity {velocity:+8.2f} detF {det:.3f} kinetic "
+                f"{r.kinetic_energy:.4g} contact {r.contact_energy:.4g} total "
+                f"{r.total_energy:.6g}",
+                flush=True,
+            )
+        else:
+            lowest(cube), lowest(top)
+
+    tic = time.perf_counter()
+    try:
+        history = fm.solve_time_steps(
+            problem, integrator, t_end, DT, on_step=line, strain_energy=psi * ufl.dx,
+            progress=False, min_dt=args.min_dt, max_penalty=args.max_penalty,
+        )  # fmt: skip
+        end = f"reached t = {history[-1].t:.4g} in {len(history) - 1} steps"
+    except RuntimeError as err:
+        end = f"stopped: {str(err)[:700]}"
+    penalty = problem.contact.penalty
+    problem.destroy()
+    if comm.rank == 0:
+        print(f"speed {speed}: {end}; penalty {penalty:.3g}; {time.perf_counter() - tic:.1f} s")
+
+
+def run(mesh, speed: float, scheme: str, steps: int, gain: float | None = None) -> dict:
+    problem, integrator, psi = setup(mesh, speed)
     kinetic = 0.5 * RHO * 0.2**3 * speed**2
     try:
         history = fm.solve_time_steps(
@@ -95,6 +157,11 @@ def main() -> None:
         "--schemes", nargs="*", default=["endpoint", "midpoint", "discrete_gradient"]
     )
     parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--trace", type=float, default=None, help="print every step to this time")
+    parser.add_argument("--youngs", type=float, default=E, help="(--trace) both bodies' E")
+    parser.add_argument("--factor", type=float, default=10.0, help="(--trace) propose_penalty's")
+    parser.add_argument("--min-dt", type=float, default=None, help="(--trace) min_dt")
+    parser.add_argument("--max-penalty", type=float, default=None, help="(--trace) max_penalty")
     parser.add_argument(
         "--max-energy-gain", type=float, default=None,
         help="solve_time_steps(max_energy_gain=...) as a fraction of the initial kinetic energy",
@@ -102,6 +169,10 @@ def main() -> None:
     args = parser.parse_args()
     comm = MPI.COMM_WORLD
     mesh = cube_over_plate(comm)
+    if args.trace is not None:
+        for speed in args.speeds:
+            trace(mesh, speed, args.trace, args)
+        return
     if comm.rank == 0:
         print(
             f"{comm.size} rank(s), dt {DT}, {args.steps} steps, max_energy_gain "

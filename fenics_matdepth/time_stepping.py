@@ -15,6 +15,7 @@ import ufl
 
 from fenics_matdepth import impacts
 from fenics_matdepth.contact.ccd import pass_through_message
+from fenics_matdepth.penalty_raise import PenaltyRaise
 from fenics_matdepth.results import Solvable, SolveResult, TimeStep
 from fenics_matdepth.stepping import StepEngine, write_state
 
@@ -53,6 +54,8 @@ class _TimeSteps(StepEngine):
         # their entry cap (truncate, resume_dt: the pending truncation and the step after it)
         self.collisions = getattr(problem, "collisions", None)
         self.truncations, self.truncate, self.resume_dt = 0, None, None
+        self.passing = False  # this try starts at min_dt from a prediction capped at an exit
+        self.raiser: PenaltyRaise | None = None  # max_penalty's
         self.t = integrator.t
         self.tol = 1e-12 * max(abs(t_end), max_dt)
         self.step_dt, self.successes = min(float(dt), max_dt), 0
@@ -98,7 +101,7 @@ class _TimeSteps(StepEngine):
         if t_end - (t + this_dt) < self.tol:
             this_dt = t_end - t
         self._start(this_dt)
-        self.truncate = None
+        self.truncate, self.passing = None, False
         if self.predict and self.collisions is not None:
             u_prev, u = integrator.u_prev.x.array, self.u.x.array
             fraction = self.collisions.step_fraction(u_prev, u)
@@ -115,15 +118,21 @@ class _TimeSteps(StepEngine):
                 )
                 self._start(this_dt)
                 fraction = self.collisions.step_fraction(u_prev, u)
-            if fraction < 1.0 and this_dt <= self.min_dt and self.collisions.passing_through:
-                self._stop_passing_through()
+            # at min_dt a vertex would leave a body through its far side: Newton tries the step
+            # from the capped prediction (the penalty may yet hold the vertex, as on the stiff
+            # plate of tests/test_ccd_impact.py); if it fails, the stop names the penalty needed
+            self.passing = (
+                fraction < 1.0 and this_dt <= self.min_dt and self.collisions.passing_through
+            )
             if fraction < 1.0:
                 # Newton starts on this side of any surface the prediction would jump through
                 u[:] = u_prev + fraction * (u - u_prev)
 
-    def _stop_passing_through(self) -> None:
+    def _stop_passing_through(self, failure: str | None) -> None:
         """Give up: even the smallest step's prediction takes a vertex out of a body through
-        its far side (the penalty is too weak for the layer); the last state is restored."""
+        its far side, and Newton failed from its capped prediction (the penalty is too weak for
+        the layer); the last state is restored. With ``max_penalty`` the penalty is raised
+        instead and the stepping goes back to the last state without contact."""
         t = self.t
         self.integrator.restore()
         if self.set_time is not None:
@@ -131,10 +140,23 @@ class _TimeSteps(StepEngine):
         if self.contact is not None:
             self.contact.update()
         kinetic = self.integrator.kinetic_energy() if self.integrator.rho is not None else np.nan
+        back = self.raiser.attempt(t, kinetic) if self.raiser is not None else None
+        if back is not None:
+            step, self.t, self.step_dt = back
+            del self.records[step + 1 :]
+            self.resume_dt, self.successes, self.truncations = None, 0, 0
+            if self.set_time is not None:
+                self.set_time(self.t)
+            self.reporter.message(
+                f"      t {t:.5g}: penalty raised to {self.contact.penalty:.3g}, back to "
+                f"t {self.t:.5g}"
+            )
+            return
         cause = pass_through_message(self.contact, kinetic) if self.contact is not None else ""
         raise RuntimeError(
             f"time stepping stopped at t = {t:.6g}, dt = {self.this_dt:.3g} (min_dt "
-            f"{self.min_dt:.3g}). {cause}"
+            f"{self.min_dt:.3g}). {cause} (The smallest step's Newton solve, started from "
+            f"the prediction held inside, failed: {(failure or 'on another rank')[:120]})"
         )
 
     def check(self, result: SolveResult) -> str | None:
@@ -155,6 +177,17 @@ class _TimeSteps(StepEngine):
             ):
                 self.truncate = fraction
                 return f"truncated at {fraction:.3g} of the step (continuous collision detection)"
+            if (
+                self.this_dt <= self.min_dt
+                and self.collisions.exits_active
+                and self.collisions.step_fraction(u_prev, u) < 1.0
+                and self.collisions.passing_through
+            ):
+                # a smallest step is accepted as it is, but not through a body's far side: a
+                # vertex Newton brought ever closer to the exit level (each step capped at half
+                # the way) crossed it by rounding and left (the cube at 500/s went through)
+                self.passing = True
+                return "a vertex would leave a body through its far side (collision detection)"
         if not self.this_dt / 2 >= self.min_dt:
             return None
         if self.step_contact is not None:
@@ -185,6 +218,9 @@ class _TimeSteps(StepEngine):
         t, this_dt, min_dt = self.t, self.this_dt, self.min_dt
         self.successes = 0
         cause = ""
+        if this_dt / 2 < min_dt and self.passing and self.truncate is None:
+            self._stop_passing_through(failure)  # returns where the penalty was raised
+            return
         if this_dt / 2 < min_dt:  # giving up: say what the step met
             cause = impacts.impact_failure_cause(
                 self.contact, self.integrator, self.contact_force, getattr(self, "result", None)
@@ -221,6 +257,8 @@ class _TimeSteps(StepEngine):
             len(self.records), self.t, self.this_dt, self.result, cuts, time.perf_counter() - tic
         )
         self.truncations = 0
+        if self.raiser is not None:
+            self.raiser.keep(record.step, self.step_dt)
         return record
 
     def write(self, record: TimeStep) -> None:
@@ -267,6 +305,7 @@ def solve_time_steps(
     predict: bool = True,
     progress: bool = True,
     contact_force: str | None = None,
+    max_penalty: float | None = None,
 ) -> list[TimeStep]:
     """Integrate ``problem`` in time from the integrator's state to ``t_end`` with step control.
 
@@ -283,6 +322,13 @@ def solve_time_steps(
     or edge deeper than the entry tolerance into a surface it was apart from is truncated at
     that fraction of the step and solved again (the paper's section 8.2); the step after it
     resumes the step size from before. ``TimeStep.truncations`` counts them.
+
+    Where even ``min_dt`` cannot keep a boundary vertex from leaving a body through its far
+    side (the penalty is too weak for the layer), the stepping stops with an error naming the
+    penalty needed; with ``max_penalty`` it raises the contact's penalty instead (to twice the
+    one needed, at most ``max_penalty``, with a ``RuntimeWarning``) and goes back to the last
+    accepted state without contact, which drops the records after it (``on_step`` and
+    ``writer`` have seen them, and see those times again).
 
     Args:
         problem: a :class:`~fenics_matdepth.ContactProblem` or
@@ -338,6 +384,11 @@ def solve_time_steps(
             ``"endpoint"`` otherwise; ``"midpoint"`` removes the energy flat faces meeting
             gain, but gains where a contact starts late in a step (``docs/dynamics.md``,
             "Energy at impacts").
+        max_penalty: raise the contact's penalty, up to this (F/L^3), where a surface would
+            pass through a body (above; :class:`~fenics_matdepth.penalty_raise.PenaltyRaise`):
+            the raise goes back to a state where no pair overlaps, so it creates no energy.
+            Needs the problem's collision detection and the integrator's ``rho``; not with
+            friction. Default None: stop with an error instead.
 
     Returns:
         The initial state (step 0) and every converged step, in time order.
@@ -355,6 +406,13 @@ def solve_time_steps(
                         max_energy_gain)):  # fmt: skip
         if bound is not None and (strain_energy is None or integrator.rho is None):
             raise ValueError(f"{name} needs strain_energy= and the integrator's rho")
+    if max_penalty is not None and (
+        getattr(problem, "collisions", None) is None or integrator.rho is None
+    ):
+        raise ValueError(
+            "max_penalty needs the problem's collision detection (ccd=True) and the "
+            "integrator's rho"
+        )
     if grow_after < 1:
         raise ValueError(f"grow_after must be >= 1, got {grow_after}")
     max_dt = float(dt) if max_dt is None else float(max_dt)
@@ -385,6 +443,9 @@ def solve_time_steps(
     try:
         with impacts.contact_force_of_steps(problem, integrator, engine.contact_force) as midpoint:
             engine.step_contact = midpoint
+            if max_penalty is not None:
+                engine.raiser = PenaltyRaise(engine.contact, integrator, max_penalty, midpoint)
+                engine.raiser.keep(0, engine.step_dt)
             return engine.run()
     finally:
         if collisions is not None:

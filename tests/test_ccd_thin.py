@@ -11,6 +11,7 @@ collision detection as ContactProblem's line search is.
 from __future__ import annotations
 
 import types
+import warnings
 
 from mpi4py import MPI
 
@@ -212,3 +213,66 @@ def test_thin_plate_is_held_by_a_penalty_ten_times_higher():
     assert energies.max() <= 1.01 * kinetic, (energies, kinetic)
     if MPI.COMM_WORLD.rank == 0:
         print(f"penalty x 10: heights {np.round(heights, 4)}, energies {np.round(energies, 4)}")
+
+
+def test_thin_plate_too_fast_for_the_penalty_is_held_with_max_penalty():
+    """The run above with ``max_penalty`` (100 times the proposed penalty): where it stopped,
+    the penalty is raised instead (to twice the one named, with a RuntimeWarning on rank 0)
+    and the stepping goes back to the last state without contact, the start; from there the
+    edge goes no deeper than half the lower plate's thickness, turns back above its top face
+    within 4 steps, and the total energy never rises above the initial kinetic energy (by
+    more than 1 %): the raise, made where nothing overlaps, created none."""
+    comm = MPI.COMM_WORLD
+    problem, integrator, strain, X_z, falling, top = _scene(comm, ccd=True)
+    u, n = problem.u, X_z.size
+    proposed = problem.contact.penalty
+
+    def lowest(mask):
+        z = X_z + u.x.array[: 3 * n].reshape(-1, 3)[:, 2]
+        return comm.allreduce(float(z[mask].min()) if mask.any() else np.inf, op=MPI.MIN)
+
+    steps = {}  # step number -> (t, height, total energy, penalty) of the kept records
+
+    def track(record):
+        height = lowest(falling) - lowest(top)
+        for later in [k for k in steps if k >= record.step]:  # steps the rewind dropped
+            del steps[later]
+        steps[record.step] = (record.t, height, record.total_energy, problem.contact.penalty)
+        if problem.contact.penalty > proposed and record.step >= 4:
+            raise fm.StopRequested("enough steps")
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        try:
+            fm.solve_time_steps(
+                problem, integrator, 1.0, DT, on_step=track, strain_energy=strain,
+                progress=False, max_penalty=100.0 * proposed,
+            )  # fmt: skip
+        except fm.StopRequested:
+            pass
+    raised = problem.contact.penalty
+    problem.destroy()
+    t, heights, energies, penalties = (np.array(c) for c in zip(*steps.values(), strict=True))
+    assert 2.0 * proposed < raised <= 100.0 * proposed, (raised, proposed)
+    assert np.all(penalties == raised), penalties  # every kept step is one of the new run's
+    assert np.all(np.diff(t) > 0.0), t
+    assert heights.min() > -0.5 * THICKNESS, heights
+    assert heights[1:].max() > 0.0, heights  # above the top face again (it rocks after)
+    kinetic = 0.5 * RHO * 0.2 * 0.2 * THICKNESS * SPEED**2
+    assert energies.max() <= 1.01 * kinetic, (energies, kinetic)
+    if comm.rank == 0:
+        messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+        assert any("penalty is raised" in m for m in messages), messages
+        print(f"penalty {proposed:.3g} -> {raised:.3g}; heights {np.round(heights, 4)}, "
+              f"energies {np.round(energies, 4)} of {kinetic:.4g}")  # fmt: skip
+
+
+def test_max_penalty_needs_the_collision_detection():
+    """``max_penalty`` acts where the collision detection finds a pass-through: without it
+    (``ccd=False``) the option is refused with a message naming what it needs."""
+    problem, integrator, strain, *_ = _scene(MPI.COMM_WORLD, ccd=False)
+    with pytest.raises(ValueError, match="max_penalty needs the problem's collision detection"):
+        fm.solve_time_steps(
+            problem, integrator, DT, DT, strain_energy=strain, progress=False, max_penalty=1e6
+        )
+    problem.destroy()

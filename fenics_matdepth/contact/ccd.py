@@ -34,7 +34,7 @@ from fenics_matdepth.geometry.boxes import element_boxes
 from fenics_matdepth.geometry.bvh import AABBTree
 from fenics_matdepth.geometry.ccd import PASS_THROUGH, sweep_caps
 
-__all__ = ["ENTRY_FRACTION", "ContinuousCollision", "pass_through_message"]
+__all__ = ["ENTRY_FRACTION", "ContinuousCollision", "pass_through_message", "penalty_needed"]
 
 #: Default entry tolerance, as a fraction of the local boundary edge length (the smaller of
 #: the two triangles' mean reference edge lengths): how far a separated pair may go past its
@@ -206,6 +206,22 @@ class ContinuousCollision:
         return float(best_all)
 
 
+def penalty_needed(contact, kinetic_energy: float) -> float | None:
+    """The penalty that would store the kinetic energy ``K`` at the overlap the contact holds
+    now (energy ``E_c``; it scales with the penalty): ``eps (K + E_c) / E_c``, or None where
+    nothing overlaps (collective).
+
+    Args:
+        contact: the problem's :class:`~fenics_matdepth.ContactOperator`, updated at the state
+            reached.
+        kinetic_energy: the kinetic energy there (F L).
+    """
+    stored = contact.energy()
+    if not (stored > 0.0 and np.isfinite(kinetic_energy)):
+        return None
+    return contact.penalty * (kinetic_energy + stored) / stored
+
+
 def pass_through_message(contact, kinetic_energy: float) -> str:
     """Why a surface held against a body's far side cannot go on, and the penalty that would
     stop it: the contact stores ``E_c`` at the overlap reached (it is largest about there: a
@@ -225,8 +241,8 @@ def pass_through_message(contact, kinetic_energy: float) -> str:
         f"there. The penalty cannot stop the motion within the layer: at this overlap the "
         f"contact stores {stored:.3g} against a kinetic energy of {kinetic_energy:.3g}"
     )
-    if stored > 0.0 and np.isfinite(kinetic_energy):
-        needed = contact.penalty * (kinetic_energy + stored) / stored
+    needed = penalty_needed(contact, kinetic_energy)
+    if needed is not None:
         sentence += (
             f"; a penalty of about {needed:.3g} (now {contact.penalty:.3g}; about 2 K / (A t^2) "
             "for kinetic energy K, contact area A and layer thickness t) would, or a thicker "
