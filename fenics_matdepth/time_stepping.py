@@ -241,10 +241,12 @@ class _TimeSteps(StepEngine):
             self.integrator.dt = max(this_dt, min_dt)
             if self.set_time is not None:
                 self.set_time(t)
+            # at the last accepted state: crushed cells are the cause, not the contact
+            crushed = impacts.crushed_cells_cause(self.problem)
             raise RuntimeError(
                 f"time stepping stopped at t = {t:.6g}: the step to {t + this_dt:.6g} "
-                f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). Last failure: "
-                f"{failure} {cause}"
+                f"failed with dt = {this_dt:.3g} (min_dt {min_dt:.3g}). {crushed}Last "
+                f"failure: {failure} {'' if crushed else cause}"
             )
         self.step_dt = this_dt / 2
 

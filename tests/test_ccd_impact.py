@@ -220,3 +220,22 @@ def test_fast_cube_on_a_stiff_plate_is_held_and_turns_back():
             f"mean velocity {velocity[-1]:.1f}; deepest {min(lowest):.4f} (entry {entry:.4f}); "
             f"energy at most {max(energy):.5g} of {kinetic:.4g}"
         )
+
+
+def test_a_crushed_plate_is_named_in_the_stop():
+    """The cube at 500 per second on the soft plate (E = 1000, its wave speed about 37 per
+    second) at the penalty the pass-through stop names for it (factor 5900: about 1.2e8): the
+    contact holds the cube at the plate's top, but the impact crushes the plate's top elements
+    (det F falls to about 1e-3) until a step cannot start. The stop says so: the smallest det F
+    of the last accepted state, crushed elements, and that no contact setting helps (before, it
+    blamed the contact and proposed a smaller penalty)."""
+    comm = MPI.COMM_WORLD
+    problem, integrator, _, strain, _ = _cube_and_plate(comm, 500.0, factor=5900.0)
+    with pytest.raises(RuntimeError, match="time stepping stopped") as failure:
+        fm.solve_time_steps(
+            problem, integrator, 8e-4, DT, strain_energy=strain, min_dt=1e-7, progress=False
+        )
+    problem.destroy()
+    message = str(failure.value)
+    assert "crushed" in message and "det F" in message, message
+    assert "smaller penalty" not in message, message
