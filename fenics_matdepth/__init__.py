@@ -24,7 +24,7 @@ from fenics_matdepth import (
     materials,
     meshing,
 )
-from fenics_matdepth._compat import solve_nonlinear
+from fenics_matdepth._compat import show_warnings, solve_nonlinear
 from fenics_matdepth.augmented import (
     AugmentedLagrangian,
     RigidModeDamping,
@@ -90,6 +90,10 @@ __all__ = [
     "solve_nonlinear",
     "solve_time_steps",
 ]
+
+# FFCx 0.9 (imported with DOLFINx above) captures warnings into logging that prints nothing:
+# the package's warnings (DepthDeficiencyWarning, the penalty raise's) must be seen
+show_warnings()
 
 
 def __getattr__(name: str):

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import logging
+import warnings
 
 import dolfinx
 
@@ -20,11 +22,34 @@ __all__ = [
     "gmsh_model_to_mesh",
     "interpolation_points",
     "set_lag_preconditioner",
+    "show_warnings",
     "solve_nonlinear",
 ]
 
 #: (major, minor) of the DOLFINx in use.
 DOLFINX_VERSION: tuple[int, int] = tuple(int(p) for p in dolfinx.__version__.split(".")[:2])
+
+
+def show_warnings() -> bool:
+    """Show warnings on stderr again where FFCx captured them into a logging set up nowhere.
+
+    FFCx 0.9 calls ``logging.captureWarnings(True)`` on import: every warning then goes to the
+    ``py.warnings`` logger, which (with no handler anywhere) gets a ``NullHandler`` at the
+    first warning, so nothing is printed. Where the root logger and ``py.warnings`` have no
+    handler of their own (no logging was set up by the script), Python's display is restored;
+    a script that configured logging keeps its choice.
+
+    Returns:
+        Whether the display was restored.
+    """
+    if warnings.showwarning is not getattr(logging, "_showwarning", None):
+        return False  # not captured (DOLFINx 0.10 on), or redirected by someone else
+    captured = logging.getLogger("py.warnings")
+    own = [h for h in captured.handlers if not isinstance(h, logging.NullHandler)]
+    if logging.getLogger().handlers or own:
+        return False
+    logging.captureWarnings(False)
+    return True
 
 
 def _newton_problem_base():
