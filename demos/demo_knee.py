@@ -57,6 +57,11 @@
 # off, steps halve only after a failure and double back after it; 10 is FEBio's choice;
 # below), `MATDEPTH_KNEE_STOP_IT` the iterations its rate test lets an attempt be predicted to
 # need (default three times the target),
+# `MATDEPTH_KNEE_ATOL` the residual norm (N) at which a Newton solve has converged (default
+# 1e-8), `MATDEPTH_KNEE_PSEUDO_TRANSIENT` the shift of pseudo-transient continuation
+# (`fm.PseudoTransient`'s `sigma0`; default 0: plain Newton; below),
+# `MATDEPTH_KNEE_STOP_DEGREES` stops the flexion at the first step at or past this angle (as
+# `knee_stop` does),
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
@@ -121,6 +126,9 @@ if predictor not in ("extrapolate", "rotation", "0"):
     raise ValueError(f"MATDEPTH_KNEE_PREDICTOR is extrapolate, rotation or 0, not {predictor!r}")
 bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
 max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 100))
+newton_atol = float(os.environ.get("MATDEPTH_KNEE_ATOL", 1e-8))
+pseudo_transient = float(os.environ.get("MATDEPTH_KNEE_PSEUDO_TRANSIENT", 0.0))
+stop_degrees = float(os.environ.get("MATDEPTH_KNEE_STOP_DEGREES", "inf"))
 target_iterations = int(os.environ.get("MATDEPTH_KNEE_TARGET_IT", 0))
 stop_iterations = int(os.environ.get("MATDEPTH_KNEE_STOP_IT", 3 * target_iterations))
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
@@ -443,7 +451,7 @@ problem = fm.ContactProblem(
     # 100 iterations: past 148 deg a solve's residual fell to about 3e-2 N and jumped back to
     # about 10 N several times as faces entered the contact (with their carried pressures), and
     # with 50 the steps were cut to 0.1 deg and less; with 100 they converged
-    petsc_options={"snes_max_it": max_newton, "snes_atol": 1e-8},
+    petsc_options={"snes_max_it": max_newton, "snes_atol": newton_atol},
     # MATDEPTH_KNEE_CCD=0: without the collision detection of the Newton steps (to measure
     # what it costs here)
     ccd=os.environ.get("MATDEPTH_KNEE_CCD", "1") not in ("", "0"),
@@ -451,6 +459,10 @@ problem = fm.ContactProblem(
 # MATDEPTH_KNEE_KEEP_LEFT=1: a pair that left the contact over a Newton step keeps its Hessian
 # in the next Jacobian (fm.contact.active_set.LaggedPairs; measured in docs/measurements.md)
 problem.assembler.keep_left_pairs(keep_left)
+# MATDEPTH_KNEE_PSEUDO_TRANSIENT=sigma0: each Jacobian shifted by sigma |diag J|, sigma falling
+# with the residual (pseudo-transient continuation, fm.PseudoTransient; docs/solvers.md)
+if pseudo_transient > 0.0:
+    problem.pseudo_transient = fm.PseudoTransient(sigma0=pseudo_transient)
 # -
 
 # ### The augmented Lagrangian
@@ -826,6 +838,8 @@ class ReportFailures:
 def counting_set_flexion(t: float) -> None:
     if (output / "knee_stop").exists():
         raise fm.StopRequested(f"{output}/knee_stop exists")
+    if per_step and per_step[-1]["degrees"] >= stop_degrees - 1e-9:
+        raise fm.StopRequested(f"reached MATDEPTH_KNEE_STOP_DEGREES={stop_degrees:g}")
     attempts["count"] += 1
     last["try"] = t * total_angle
     if augmented is not None and al_reset:
@@ -1154,6 +1168,8 @@ summary = {
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "max_newton_iterations": max_newton,
+    "newton_atol": newton_atol,
+    "pseudo_transient": pseudo_transient,
     "target_degrees": total_degrees,
     "num_steps": num_steps,
     "reached_degrees": reached,
