@@ -56,7 +56,9 @@
 # `MATDEPTH_KNEE_TARGET_IT` the step control's target Newton iterations per step (default 0:
 # off, steps halve only after a failure and double back after it; 10 is FEBio's choice;
 # below), `MATDEPTH_KNEE_STOP_IT` the iterations its rate test lets an attempt be predicted to
-# need (default three times the target),
+# need (default three times the target), `MATDEPTH_KNEE_MIN_SCALE` the smallest factor from a
+# converged step to the next (default: the step control's, 1 / 2; 1: a hard step does not
+# shrink the next),
 # `MATDEPTH_KNEE_ATOL` the residual norm (N) at which a Newton solve has converged (default
 # 1e-8), `MATDEPTH_KNEE_PSEUDO_TRANSIENT` the shift of pseudo-transient continuation
 # (`fm.PseudoTransient`'s `sigma0`; default 0: plain Newton; below),
@@ -131,6 +133,7 @@ pseudo_transient = float(os.environ.get("MATDEPTH_KNEE_PSEUDO_TRANSIENT", 0.0))
 stop_degrees = float(os.environ.get("MATDEPTH_KNEE_STOP_DEGREES", "inf"))
 target_iterations = int(os.environ.get("MATDEPTH_KNEE_TARGET_IT", 0))
 stop_iterations = int(os.environ.get("MATDEPTH_KNEE_STOP_IT", 3 * target_iterations))
+min_scale = float(os.environ.get("MATDEPTH_KNEE_MIN_SCALE", 0.0)) or None
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
 fibre_toe = float(os.environ.get("MATDEPTH_KNEE_FIBRE_TOE", 0.04))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
@@ -917,7 +920,7 @@ report(
     + f"{comm.size} process(es)"
 )
 step_control = (
-    fm.StepControl(target_iterations, stop_iterations=stop_iterations)
+    fm.StepControl(target_iterations, stop_iterations=stop_iterations, min_scale=min_scale)
     if target_iterations > 0
     else None
 )
@@ -1167,6 +1170,7 @@ summary = {
     "keep_left_pairs": keep_left,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
+    "min_scale": min_scale,
     "max_newton_iterations": max_newton,
     "newton_atol": newton_atol,
     "pseudo_transient": pseudo_transient,
