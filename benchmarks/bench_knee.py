@@ -18,8 +18,8 @@ KSP monitors on, reads the monitor lines of every attempt (converged or cut) and
 Run: ``scripts/fenicsx python3 benchmarks/bench_knee.py [--degrees 30 --steps 10]
 [--predictor extrapolate|rotation|0] [--processes 2] [--env KEY=VALUE ...] [--log FILE]``
 (defaults: the first 30° in 10 steps, the demo's predictor; ``--log`` keeps every monitor line,
-e.g. to count the iterations a solve spends below a tolerance). ``--degrees 150 --steps 50`` is the full demo.
-Prints figures; asserts nothing about time.
+e.g. to count the iterations a solve spends below a tolerance). ``--degrees 150 --steps 50``
+is the full demo. Prints figures; asserts nothing about time.
 """
 
 from __future__ import annotations

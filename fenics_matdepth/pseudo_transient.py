@@ -54,6 +54,10 @@ class PseudoTransient:
         max_ratio: ``|F_k| / |F_ref|`` is capped at this (a residual that grew a thousandfold
             does not make the steps a thousand times shorter).
 
+    One control serves one problem (it keeps a mask of that problem's Dirichlet rows); call
+    :meth:`destroy` with the problem's (its two PETSc vectors; on more than one rank petsc4py
+    otherwise leaves them in PETSc's garbage).
+
     Attributes:
         shifted: Newton iterations of the last solve whose Jacobian was shifted.
         last_sigma: the shift of the last Jacobian (0 where none).

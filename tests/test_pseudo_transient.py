@@ -46,6 +46,8 @@ def _tilted_well(load: float, sigma0: float | None):
         problem.pseudo_transient = fm.PseudoTransient(sigma0=sigma0)
     u.x.array[0::3] = -a
     result = problem.solve(raise_on_failure=False)
+    if sigma0 is not None:
+        problem.pseudo_transient.destroy()
     problem.destroy()
     return result, u
 
@@ -115,6 +117,8 @@ def _pressed_blocks(sigma0: float | None):
     if sigma0 is not None:
         control = problem.pseudo_transient = PseudoTransient(sigma0=sigma0)
     result = problem.solve()
+    if control is not None:
+        control.destroy()
     problem.destroy()
     return result, u, control
 
