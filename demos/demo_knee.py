@@ -56,7 +56,14 @@
 # `MATDEPTH_KNEE_TARGET_IT` the step control's target Newton iterations per step (default 0:
 # off, steps halve only after a failure and double back after it; 10 is FEBio's choice;
 # below), `MATDEPTH_KNEE_STOP_IT` the iterations its rate test lets an attempt be predicted to
-# need (default three times the target),
+# need (default three times the target), `MATDEPTH_KNEE_MIN_SCALE` the smallest factor from a
+# converged step to the next (default: the step control's, 1 / 2; 1: a hard step does not
+# shrink the next),
+# `MATDEPTH_KNEE_ATOL` the residual norm (N) at which a Newton solve has converged (default
+# 1e-2; below), `MATDEPTH_KNEE_PSEUDO_TRANSIENT` the shift of pseudo-transient continuation
+# (`fm.PseudoTransient`'s `sigma0`; default 0: plain Newton; below),
+# `MATDEPTH_KNEE_STOP_DEGREES` stops the flexion at the first step at or past this angle (as
+# `knee_stop` does),
 # `MATDEPTH_KNEE_PENALTY` the contact penalty (default 2 MPa/mm),
 # `MATDEPTH_KNEE_AL_TOL_H` the overlap the augmented Lagrangian accepts, relative to the
 # boundary's median edge (default 0.1; 0 turns it off: plain penalty),
@@ -121,8 +128,12 @@ if predictor not in ("extrapolate", "rotation", "0"):
     raise ValueError(f"MATDEPTH_KNEE_PREDICTOR is extrapolate, rotation or 0, not {predictor!r}")
 bulk_ratio = float(os.environ.get("MATDEPTH_KNEE_BULK_RATIO", 50.0))
 max_newton = int(os.environ.get("MATDEPTH_KNEE_MAX_IT", 100))
+newton_atol = float(os.environ.get("MATDEPTH_KNEE_ATOL", 1e-2))
+pseudo_transient = float(os.environ.get("MATDEPTH_KNEE_PSEUDO_TRANSIENT", 0.0))
+stop_degrees = float(os.environ.get("MATDEPTH_KNEE_STOP_DEGREES", "inf"))
 target_iterations = int(os.environ.get("MATDEPTH_KNEE_TARGET_IT", 0))
 stop_iterations = int(os.environ.get("MATDEPTH_KNEE_STOP_IT", 3 * target_iterations))
+min_scale = float(os.environ.get("MATDEPTH_KNEE_MIN_SCALE", 0.0)) or None
 al_tol_h = float(os.environ.get("MATDEPTH_KNEE_AL_TOL_H", 0.1))
 fibre_toe = float(os.environ.get("MATDEPTH_KNEE_FIBRE_TOE", 0.04))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
@@ -437,13 +448,17 @@ problem = fm.ContactProblem(
     bcs=bcs,
     energy=energy,
     petsc_options_prefix="knee_",
-    # |F| below 1e-8 N is converged: the forces in the leg are of order 100 N, and the residual's
-    # rounding floor reached 2e-9 to 4e-9 N at 121 deg, where the relative tolerance (1e-10 of
-    # the first residual) of a small step lay below it and the step was cut to nothing.
+    # |F| below 1e-2 N is converged (MATDEPTH_KNEE_ATOL): the forces in the leg are of order 1 to
+    # 1000 N, and 1e-2 N left the first 30 deg's checks the same to 5 digits (penetration,
+    # det F, the patella's turn and displacement, the fold) where 1e-8 N, the earlier
+    # tolerance, took 21 more Newton iterations, one or two a step in the quadratic range
+    # (docs/measurements.md). (An absolute tolerance also keeps a small step's relative one,
+    # 1e-10 of its first residual, from lying below the residual's rounding floor, 2e-9 to
+    # 4e-9 N at 121 deg, where steps were cut to nothing.)
     # 100 iterations: past 148 deg a solve's residual fell to about 3e-2 N and jumped back to
     # about 10 N several times as faces entered the contact (with their carried pressures), and
     # with 50 the steps were cut to 0.1 deg and less; with 100 they converged
-    petsc_options={"snes_max_it": max_newton, "snes_atol": 1e-8},
+    petsc_options={"snes_max_it": max_newton, "snes_atol": newton_atol},
     # MATDEPTH_KNEE_CCD=0: without the collision detection of the Newton steps (to measure
     # what it costs here)
     ccd=os.environ.get("MATDEPTH_KNEE_CCD", "1") not in ("", "0"),
@@ -451,6 +466,10 @@ problem = fm.ContactProblem(
 # MATDEPTH_KNEE_KEEP_LEFT=1: a pair that left the contact over a Newton step keeps its Hessian
 # in the next Jacobian (fm.contact.active_set.LaggedPairs; measured in docs/measurements.md)
 problem.assembler.keep_left_pairs(keep_left)
+# MATDEPTH_KNEE_PSEUDO_TRANSIENT=sigma0: each Jacobian shifted by sigma |diag J|, sigma falling
+# with the residual (pseudo-transient continuation, fm.PseudoTransient; docs/solvers.md)
+if pseudo_transient > 0.0:
+    problem.pseudo_transient = fm.PseudoTransient(sigma0=pseudo_transient)
 # -
 
 # ### The augmented Lagrangian
@@ -826,6 +845,8 @@ class ReportFailures:
 def counting_set_flexion(t: float) -> None:
     if (output / "knee_stop").exists():
         raise fm.StopRequested(f"{output}/knee_stop exists")
+    if per_step and per_step[-1]["degrees"] >= stop_degrees - 1e-9:
+        raise fm.StopRequested(f"reached MATDEPTH_KNEE_STOP_DEGREES={stop_degrees:g}")
     attempts["count"] += 1
     last["try"] = t * total_angle
     if augmented is not None and al_reset:
@@ -903,7 +924,7 @@ report(
     + f"{comm.size} process(es)"
 )
 step_control = (
-    fm.StepControl(target_iterations, stop_iterations=stop_iterations)
+    fm.StepControl(target_iterations, stop_iterations=stop_iterations, min_scale=min_scale)
     if target_iterations > 0
     else None
 )
@@ -1153,7 +1174,10 @@ summary = {
     "keep_left_pairs": keep_left,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
+    "min_scale": min_scale,
     "max_newton_iterations": max_newton,
+    "newton_atol": newton_atol,
+    "pseudo_transient": pseudo_transient,
     "target_degrees": total_degrees,
     "num_steps": num_steps,
     "reached_degrees": reached,

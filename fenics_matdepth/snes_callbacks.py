@@ -94,6 +94,8 @@ class SNESCallbacks:
     """
 
     stop_test = None
+    #: None, or a :class:`~fenics_matdepth.PseudoTransient` shifting each Jacobian
+    pseudo_transient = None
 
     def _set_state(self, x: PETSc.Vec) -> None:
         self.assembler.set_state(x)
@@ -129,10 +131,21 @@ class SNESCallbacks:
         # SNES evaluates the residual at x before the Jacobian, so the contact state is current.
         if not self._resumed_unchanged:
             self.assembler.jacobian(A)
+            if self.pseudo_transient is not None:
+                self._shift_pseudo_transient(snes, x, A)
         self._resumed_unchanged = False
         if self._choose_factorisation and self._factorise:
             with self._watch("linear_solve"):
                 linear_solver.choose_factorisation(self.snes.getKSP().getPC(), A)
+
+    def _shift_pseudo_transient(self, snes: PETSc.SNES, x: PETSc.Vec, A: PETSc.Mat) -> None:
+        """The pseudo-transient continuation's shift of the Jacobian just assembled at ``x``
+        (:mod:`fenics_matdepth.pseudo_transient`); a solve's first Jacobian resets it."""
+        if snes.getIterationNumber() == 0 and not self._resuming:
+            self.pseudo_transient.start_solve()
+        scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
+        bcs_met = self.assembler.bc_offset(x) <= 1e-12 * scale
+        self.pseudo_transient.shift(A, self.assembler, snes.getFunctionNorm(), bcs_met)
 
     def _objective(self, snes: PETSc.SNES, x: PETSc.Vec) -> float:
         if not self._merit_is_energy:

@@ -153,6 +153,11 @@ class StepControl:
         stops_per_step: the attempts of one step the rate test may stop; the later attempts of
             that step run to the problem's own iteration limit (see the module). None: every
             attempt is judged.
+        min_scale: the smallest factor from a converged step to the next (default None:
+            ``1 / max_growth``); 1 never shrinks the next step after a converged one, however
+            many iterations it took (only a failed attempt cuts): for load paths whose hard
+            steps are hard whatever their increment (a limit point, a snap), where shrinking
+            after each only multiplies the steps.
     """
 
     target_iterations: int = 10
@@ -160,12 +165,15 @@ class StepControl:
     window: int = 4
     max_growth: float = 2.0
     stops_per_step: int | None = 1
+    min_scale: float | None = None
 
     def __post_init__(self):
         if self.target_iterations < 1:
             raise ValueError(f"target_iterations must be >= 1, got {self.target_iterations}")
         if not self.max_growth >= 1.0:
             raise ValueError(f"max_growth must be >= 1, got {self.max_growth}")
+        if self.min_scale is not None and not 0.0 < self.min_scale <= 1.0:
+            raise ValueError(f"min_scale must be in (0, 1] or None, got {self.min_scale}")
         self.rate_test()  # checks window and stop_iterations
 
     @property
@@ -178,7 +186,8 @@ class StepControl:
     def scale(self, iterations: int) -> float:
         """The factor from the last converged step to the next one, after ``iterations``."""
         factor = math.sqrt(self.target_iterations / max(int(iterations), 1))
-        return min(max(factor, 1.0 / self.max_growth), self.max_growth)
+        lowest = 1.0 / self.max_growth if self.min_scale is None else self.min_scale
+        return min(max(factor, lowest), self.max_growth)
 
     def rate_test(self) -> SlowConvergence:
         """A new :class:`~fenics_matdepth.step_control.SlowConvergence` with this control's

@@ -27,7 +27,7 @@ PUBLIC = {
     "FreeBody", "FreeBodyDamping", "find_free_bodies",
     # stepping
     "solve_load_steps", "StepControl", "LoadStep", "StopRequested", "solve_time_steps", "TimeStep",
-    "Newmark", "BackwardEuler", "Checkpoint",
+    "Newmark", "BackwardEuler", "Checkpoint", "PseudoTransient",
     # wrappers over a problem
     "AugmentedLagrangian", "UzawaUpdate", "RigidModeDamping", "damping_energy",
     "PenaltyContinuation", "ContinuationStage",

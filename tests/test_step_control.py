@@ -84,6 +84,12 @@ def test_step_scaling_and_bad_settings():
         fm.StepControl(target_iterations=10, stop_iterations=5)
     with pytest.raises(ValueError, match="max_growth"):
         fm.StepControl(max_growth=0.5)
+    # min_scale = 1: a hard converged step does not shrink the next one
+    keep = fm.StepControl(target_iterations=9, min_scale=1.0)
+    assert keep.scale(36) == 1.0 and keep.scale(4) == pytest.approx(1.5)
+    assert fm.StepControl(target_iterations=9, min_scale=0.8).scale(36) == pytest.approx(0.8)
+    with pytest.raises(ValueError, match="min_scale"):
+        fm.StepControl(min_scale=1.5)
     with pytest.raises(TypeError, match="StepControl"):
         fm.solve_load_steps(None, lambda t: None, step_control={"target_iterations": 5})
 
