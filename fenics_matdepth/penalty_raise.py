@@ -28,7 +28,7 @@ from fenics_matdepth.contact.ccd import penalty_needed
 
 __all__ = ["PENALTY_MARGIN", "PenaltyRaise"]
 
-#: The raised penalty is this times the estimate :func:`penalty_needed` gives (the estimate
+#: The raised penalty is this times the estimate ``contact.ccd.penalty_needed`` gives (the estimate
 #: stores the kinetic energy at the overlap reached, the layer's far face: the margin keeps
 #: the surface short of it).
 PENALTY_MARGIN = 2.0
