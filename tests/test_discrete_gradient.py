@@ -212,8 +212,8 @@ def test_max_energy_gain_retries_only_the_steps_that_gain():
     bound the bulk's trapezoidal error raises the total energy by 1.4e-2 of the start in a
     step after they separate (t = 0.525) and loses 1.75e-2 in the first contact step. With
     ``max_energy_gain`` at 1e-3 of the start no accepted step above ``min_dt`` rises by more
-    than that (5.7e-4 measured, 8 cuts), while the larger loss stays (a one-sided bound:
-    ``max_energy_change`` would retry it too)."""
+    than that (5.7e-4 measured, 8 cuts), while a loss larger than the bound stays (a
+    one-sided bound: ``max_energy_change`` would retry it too)."""
     dt, bound = 0.05, 1e-3
     cubes = _Cubes(3, 0.0, 1.0, lambda u: fm.Newmark(u, dt, rho=RHO))
     history, energy, drift = cubes.run(
@@ -225,7 +225,9 @@ def test_max_energy_gain_retries_only_the_steps_that_gain():
     above_min = np.array([r.dt > dt / 2**10 for r in history[1:]])
     change = np.diff(energy)
     assert change[above_min].max() <= bound, change.max()
-    assert change.min() < -10 * bound, change.min()
+    # a loss larger than the bound was accepted, not retried (one-sided); how large depends on
+    # the path of cuts, which on 2 ranks differs between runs (-1.75e-2 serially, -6.9e-3 seen)
+    assert change.min() < -bound, change.min()
     assert sum(r.cuts for r in history) > 0
     cubes.problem.destroy()
 
