@@ -41,8 +41,9 @@ import dataclasses
 
 from petsc4py import PETSc
 
-import dolfinx
 import numpy as np
+
+from fenics_matdepth.contact.assembly import owned_dirichlet_dofs
 
 __all__ = ["PseudoTransient"]
 
@@ -109,16 +110,9 @@ class PseudoTransient:
     def _free_rows(self, assembler) -> PETSc.Vec:
         """1 on the rows without a Dirichlet condition, 0 on theirs (built once)."""
         if self._free is None:
-            one = assembler.u.x.petsc_vec.duplicate()
-            two = one.duplicate()
-            one.set(1.0)
-            two.set(2.0)
-            # set_bc writes the prescribed values into both: they differ off the Dirichlet dofs
-            dolfinx.fem.petsc.set_bc(one, assembler.bcs)
-            dolfinx.fem.petsc.set_bc(two, assembler.bcs)
-            two.axpy(-1.0, one)
-            one.destroy()
-            self._free = two
+            self._free = assembler.u.x.petsc_vec.duplicate()
+            self._free.set(1.0)
+            self._free.array[owned_dirichlet_dofs(assembler.bcs)] = 0.0
         return self._free
 
     def shift(self, A: PETSc.Mat, assembler, norm: float, bcs_met: bool) -> float:
