@@ -94,6 +94,8 @@ class SNESCallbacks:
     """
 
     stop_test = None
+    #: whether the collision detection shortened the last Newton step (ContactProblem._precheck)
+    _step_capped = False
     #: None, or a :class:`~fenics_matdepth.PseudoTransient` shifting each Jacobian
     pseudo_transient = None
 
@@ -298,8 +300,13 @@ class SNESCallbacks:
             if not self._resuming:
                 self._first_norm = norm
         elif norm <= MERIT_SWITCH_RTOL * self._first_norm or (
-            # only a step the energy judged tells that the energy stalled
-            self._merit_is_energy and abs(norm - self._last_norm) <= STALL_RTOL * self._last_norm
+            # only a step the energy judged, at the length the line search chose, tells that
+            # the energy stalled: a step the collision detection shortened (to 1e-3 of the
+            # Newton step and less where a surface would pass another) changes the residual
+            # little because it is short, not because the energy no longer resolves it
+            self._merit_is_energy
+            and not self._step_capped
+            and abs(norm - self._last_norm) <= STALL_RTOL * self._last_norm
         ):
             self._energy_merit_allowed = False
         self._last_norm = norm

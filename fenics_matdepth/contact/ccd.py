@@ -109,6 +109,8 @@ class ContinuousCollision:
             self.X[self.tri[:, [1, 2, 0]]] - self.X[self.tri], axis=2
         ).mean(axis=1)
         self.entry = np.ascontiguousarray(self.entry_fraction * edge_length, dtype=FLOAT)
+        #: the median of the triangles' mean reference edge lengths (L)
+        self.median_edge = float(np.median(edge_length)) if edge_length.size else 0.0
         # the swept-box tree: a "cell" of six points, the triangle at the start and the end
         self._swept_cells = np.ascontiguousarray(np.hstack((self.tri, self.tri + nb)))
         self._tree: AABBTree | None = None
@@ -159,6 +161,14 @@ class ContinuousCollision:
         x[self._gather_order] = allgather_rows(self.comm, u[self._owned_rows].astype(FLOAT))
         x += self.X
         return x
+
+    def travel(self, u0_owned: np.ndarray, u1_owned: np.ndarray) -> float:
+        """The longest distance a boundary vertex moves on the step from ``u0`` to ``u1``
+        (owned dof values, as :meth:`step_fraction`; collective)."""
+        u0 = np.asarray(u0_owned)[: self._n_owned_dofs].reshape(-1, 3)[self._owned_rows]
+        u1 = np.asarray(u1_owned)[: self._n_owned_dofs].reshape(-1, 3)[self._owned_rows]
+        local = float(np.sqrt(((u1 - u0) ** 2).sum(axis=1)).max()) if u0.size else 0.0
+        return self.comm.allreduce(local, op=MPI.MAX)
 
     def step_fraction(
         self, u0_owned: np.ndarray, u1_owned: np.ndarray, entry_scale: float = 1.0
