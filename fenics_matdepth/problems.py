@@ -93,15 +93,6 @@ class _Releasable:
         self.destroy()
 
 
-#: With the collision detection on, a Newton step is first shortened so that no boundary vertex
-#: moves more than this many median boundary edges (ContactProblem._precheck). A Newton step
-#: near a limit point of the load path can be hundreds of element sizes long (470 mm on the
-#: knee's coarse leg, median edge 4.4 mm), which the line search then cuts to a tenth or less;
-#: the collision detection's swept boxes of such a step overlap nearly every triangle, and
-#: one query took 40 s and more (all pairs of the 6.8k boundary triangles).
-MAX_TRAVEL_EDGES = 10.0
-
-
 class ContactProblem(SNESCallbacks, _Releasable):
     """Nonlinear problem F(u) + dE_contact/du = 0 solved with PETSc SNES.
 
@@ -295,12 +286,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
         x_array = x.getArray(readonly=True)
         end = x_array - y.getArray(readonly=True)
         with self._watch("ccd"):
-            travel = self.collisions.travel(x_array, end)
-            limit = MAX_TRAVEL_EDGES * self.collisions.median_edge
-            bound = limit / travel if travel > limit else 1.0
-            if bound < 1.0:
-                end = x_array - bound * y.getArray(readonly=True)
-            fraction = bound * self.collisions.step_fraction(x_array, end)
+            fraction = self.collisions.newton_fraction(x_array, end)
         self._step_capped = fraction < 1.0
         if fraction < 1.0:
             y.scale(fraction)
@@ -373,7 +359,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
                     self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                     self._merit_is_energy, self._last_norm = True, np.inf
                     self.shifted_steps = self.ccd_caps = 0
-                    self._step_capped = False
+                    self._step_capped, self.dirichlet_snaps = False, 0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
                     self.assembler.start_solve()
@@ -619,7 +605,7 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
             x.copy(self._trial)
             self._trial.axpy(-step, dx)
             with self._watch("ccd"):
-                fraction = self.collisions.step_fraction(
+                fraction = self.collisions.newton_fraction(
                     x.getArray(readonly=True), self._trial.getArray(readonly=True)
                 )
             if fraction < 1.0:

@@ -152,6 +152,47 @@ def test_newton_update_is_capped_by_the_collision_detection():
         problem.destroy()
 
 
+@pytest.mark.parametrize("solver", ["snes", "newton"])
+def test_newton_step_is_bounded_in_travel_before_the_sweep(solver):
+    """A Newton step moving the falling plate 100 up (away from everything; 500 plate
+    thicknesses) is shortened to ``collisions.max_travel`` (NEWTON_TRAVEL_EDGES median boundary
+    edges) before the collision detection sweeps it: ContactProblem's line-search pre-check
+    scales the step, NonlinearContactProblem's update moves the plate that far; ``travel``
+    is the largest vertex displacement. A step within the bound is left whole."""
+    comm = MPI.COMM_WORLD
+    problem, _, _, X_z, falling, _ = _scene(comm, True, solver)
+    collisions = problem.collisions
+    edge = np.linalg.norm(
+        collisions.X[collisions.tri[:, [1, 2, 0]]] - collisions.X[collisions.tri], axis=2
+    ).mean(axis=1)
+    assert collisions.max_travel == pytest.approx(
+        fm.contact.ccd.NEWTON_TRAVEL_EDGES * np.median(edge), rel=1e-12
+    )
+    for distance in (100.0, 0.5 * collisions.max_travel):
+        x = problem.u.x.petsc_vec
+        x.set(0.0)
+        dx = x.duplicate()
+        step = np.zeros((X_z.size, 3))
+        step[falling, 2] = -distance  # the update is x - dx: up
+        dx.getArray()[: step.size] = step.ravel()
+        moving = comm.allreduce(int(falling.sum()))
+        if moving:
+            end = -dx.getArray(readonly=True)
+            assert collisions.travel(x.getArray(readonly=True), end) == pytest.approx(distance)
+        if solver == "snes":
+            problem._precheck(x, dx)
+            moved = -dx.getArray(readonly=True)[: step.size].reshape(-1, 3)[falling, 2]
+        else:
+            problem._update(types.SimpleNamespace(relaxation_parameter=1.0), dx, x)
+            moved = x.getArray(readonly=True)[: step.size].reshape(-1, 3)[falling, 2]
+        expected = min(distance, collisions.max_travel)
+        assert np.allclose(moved, expected, rtol=1e-12), (moved[:3], expected)
+        assert problem.ccd_caps == (1 if distance > collisions.max_travel else 0)
+        problem.ccd_caps = 0
+        dx.destroy()
+    problem.destroy()
+
+
 def test_thin_plate_passes_through_without_collision_detection():
     """The failure: with ``ccd=False`` the leading edge is below the lower plate's bottom
     face after two steps (with the end-of-step contact force, as measured when the collision
