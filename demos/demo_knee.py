@@ -462,6 +462,9 @@ problem = fm.ContactProblem(
     # MATDEPTH_KNEE_CCD=0: without the collision detection of the Newton steps (to measure
     # what it costs here)
     ccd=os.environ.get("MATDEPTH_KNEE_CCD", "1") not in ("", "0"),
+    # MATDEPTH_KNEE_CCD_ENTRY: the collision detection's entry tolerance, a fraction of the
+    # local boundary edge (default 0.25; docs/measurements.md)
+    ccd_entry=float(os.environ.get("MATDEPTH_KNEE_CCD_ENTRY", fm.contact.ccd.ENTRY_FRACTION)),
 )
 # MATDEPTH_KNEE_KEEP_LEFT=1: a pair that left the contact over a Newton step keeps its Hessian
 # in the next Jacobian (fm.contact.active_set.LaggedPairs; measured in docs/measurements.md)
