@@ -284,9 +284,8 @@ class ContactProblem(SNESCallbacks, _Releasable):
         if self.collisions is None:
             return changed
         x_array = x.getArray(readonly=True)
-        end = x_array - y.getArray(readonly=True)
         with self._watch("ccd"):
-            fraction = self.collisions.newton_fraction(x_array, end)
+            fraction = self.collisions.newton_fraction(x_array, x_array - y.getArray(True))
         self._step_capped = fraction < 1.0
         if fraction < 1.0:
             y.scale(fraction)
@@ -358,8 +357,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
                     self._factorisations = self._iteration_offset = 0
                     self._watch.totals = dict.fromkeys(TIMING_KEYS, 0.0)
                     self._merit_is_energy, self._last_norm = True, np.inf
-                    self.shifted_steps = self.ccd_caps = 0
-                    self._step_capped, self.dirichlet_snaps = False, 0
+                    self.shifted_steps = self.ccd_caps = self.dirichlet_snaps = 0
                     self._energy_merit_allowed, self._bcs_met = True, False
                     self.assembler.rejected_states = 0
                     self.assembler.start_solve()
@@ -605,9 +603,8 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
             x.copy(self._trial)
             self._trial.axpy(-step, dx)
             with self._watch("ccd"):
-                fraction = self.collisions.newton_fraction(
-                    x.getArray(readonly=True), self._trial.getArray(readonly=True)
-                )
+                x0, x1 = x.getArray(readonly=True), self._trial.getArray(readonly=True)
+                fraction = self.collisions.newton_fraction(x0, x1)
             if fraction < 1.0:
                 step *= fraction
                 self.ccd_caps += 1
