@@ -180,7 +180,16 @@ def main() -> None:
     wall = time.perf_counter() - tic
     if args.log:
         Path(args.log).write_text("\n".join(lines) + "\n")
-    summary = json.loads((output / "knee.json").read_text())
+    if (output / "knee.json").exists():
+        summary = json.loads((output / "knee.json").read_text())
+    else:  # the demo was killed: the iterations from its monitor lines only
+        print(f"\n(no {output / 'knee.json'}: the demo did not finish; figures from its output)")
+        nan = float("nan")
+        summary = dict(
+            max_newton_iterations=int(env.get("MATDEPTH_KNEE_MAX_IT", 100)),
+            reached_degrees=nan, completed=False, steps=[], seconds=nan, solve_seconds=nan,
+            time_split=dict(force_stiffness=nan, contact_update=nan, linear_solve=nan),
+        )  # fmt: skip
 
     steps = parse(lines)
     per_step = [sum(len(a.iterations) for a in attempts) for attempts in steps]
