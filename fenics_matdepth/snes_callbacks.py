@@ -82,13 +82,13 @@ SHIFT_GROWTH = 10.0
 SHIFT_TRIES = 8
 
 #: While the Dirichlet dofs move onto their values (through the Newton steps, see
-#: SystemAssembler) only |F|^2 / 2 can judge a step; once an iterate is within this fraction
-#: of the solve's initial distance from them, it is set onto them (unless an element would
-#: invert) and the energy judges the steps from there. Where the collision detection or the
-#: line search shortened the first step, the rest came in by the same fraction of each later
-#: step: on the knee at 93 deg (coarse leg) the first step went 0.98 of the way, and the step
-#: to 96 deg failed after 98 iterations on |F|^2 / 2 (cut to 94.5 deg); set onto their values
-#: after the first step, it converged in 15.
+#: SystemAssembler) only the residual norm can judge a step; once an iterate is within this
+#: fraction of the solve's initial distance from them, it is set onto them (unless an element
+#: would invert) and the energy judges the steps from there. Where the collision detection or
+#: the line search shortened the first step, the rest came in by the same fraction of each
+#: later step: on the knee at 93 deg (coarse leg) the first step went 0.98 of the way, and the
+#: step to 96 deg failed after 98 iterations on the residual norm (cut to 94.5 deg); set onto
+#: their values after the first step, it converged in 15.
 DIRICHLET_SNAP = 0.25
 
 

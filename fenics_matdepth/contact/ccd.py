@@ -51,7 +51,7 @@ ENTRY_FRACTION = 0.25
 #: A Newton step is shortened, before it is swept, so that no boundary vertex moves more than
 #: this many median boundary edges (:meth:`ContinuousCollision.newton_fraction`). Near a limit
 #: point of the load path a Newton step can move a few vertices hundreds of metres (6.2e5 mm
-#: measured on the knee's coarse leg at 96 deg, median edge 4.3 mm, |F| about 300 N), which
+#: measured on the knee's coarse leg at 96 deg, median edge 4.3 mm, residual 100 to 340 N), which
 #: the line search then cuts to a tenth or less; the swept boxes of such a step overlap
 #: nearly every triangle, and one query took 40 s and more (the knee's 6.8k boundary
 #: triangles, against 0.1 s for a step of element size).
@@ -191,7 +191,7 @@ class ContinuousCollision:
     def newton_fraction(self, u0_owned: np.ndarray, u1_owned: np.ndarray) -> float:
         """The fraction of a Newton step from ``u0`` to ``u1`` (owned dof values) to take:
         the step first shortened so that no boundary vertex moves more than
-        :attr:`max_travel`, then that step's :meth:`step_fraction` (collective)."""
+        ``max_travel``, then that step's :meth:`step_fraction` (collective)."""
         travel = self.travel(u0_owned, u1_owned)
         if not travel > self.max_travel:
             return self.step_fraction(u0_owned, u1_owned)
