@@ -16,6 +16,7 @@ import time
 
 from petsc4py import PETSc
 
+import dolfinx.fem.petsc
 import numpy as np
 
 from fenics_matdepth import linear_solver
@@ -381,7 +382,7 @@ class SNESCallbacks:
         would invert; then the residual (SNES's function vector and norm) is that of the new
         iterate. Returns whether ``x`` was changed (collective)."""
         trial = x.copy()
-        trial.axpy(1.0, self.assembler._bc_gap(x))
+        dolfinx.fem.petsc.set_bc(trial, self.assembler.bcs)
         try:
             self._set_state(trial)
             if not self.min_det_F() > 0.0:

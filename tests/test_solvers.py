@@ -402,7 +402,7 @@ def test_only_a_stalled_energy_step_hands_the_line_search_to_the_residual():
     knee, a start with the femur 0.5 mm off its fixed place lost the energy after three such
     steps and crawled for 50 iterations. Nor does an energy step the collision detection
     shortened: it is short, and says nothing of the energy's rounding (on the knee at 117 deg
-    a step cut to 1e-3 by the collision detection handed over at |F| = 67 N, and the step
+    a step cut to 1e-2 by the collision detection handed over at |F| = 67 N, and the step
     took 40 iterations on |F|^2 / 2, 27 with the energy kept)."""
     comm = MPI.COMM_WORLD
     mesh, V, u, residual, energy = _stacked_blocks(comm)

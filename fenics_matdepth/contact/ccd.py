@@ -174,18 +174,21 @@ class ContinuousCollision:
     def positions(self, u_owned: np.ndarray) -> np.ndarray:
         """Current positions (nb, 3) of all boundary vertices, from this rank's owned dof
         values of the displacement (3 per owned vertex; collective)."""
-        u = np.asarray(u_owned)[: self._n_owned_dofs].reshape(-1, 3)
         x = np.empty_like(self.X)
-        x[self._gather_order] = allgather_rows(self.comm, u[self._owned_rows].astype(FLOAT))
+        x[self._gather_order] = allgather_rows(self.comm, self._owned_boundary(u_owned))
         x += self.X
         return x
+
+    def _owned_boundary(self, u_owned: np.ndarray) -> np.ndarray:
+        """The displacements (n, 3) of this rank's owned boundary vertices, in gather order."""
+        u = np.asarray(u_owned)[: self._n_owned_dofs].reshape(-1, 3)
+        return u[self._owned_rows].astype(FLOAT)
 
     def travel(self, u0_owned: np.ndarray, u1_owned: np.ndarray) -> float:
         """The longest distance a boundary vertex moves on the step from ``u0`` to ``u1``
         (owned dof values, as :meth:`step_fraction`; collective)."""
-        u0 = np.asarray(u0_owned)[: self._n_owned_dofs].reshape(-1, 3)[self._owned_rows]
-        u1 = np.asarray(u1_owned)[: self._n_owned_dofs].reshape(-1, 3)[self._owned_rows]
-        local = float(np.sqrt(((u1 - u0) ** 2).sum(axis=1)).max()) if u0.size else 0.0
+        d = self._owned_boundary(u1_owned) - self._owned_boundary(u0_owned)
+        local = float(np.sqrt((d**2).sum(axis=1)).max()) if d.size else 0.0
         return self.comm.allreduce(local, op=MPI.MAX)
 
     def newton_fraction(self, u0_owned: np.ndarray, u1_owned: np.ndarray) -> float:
