@@ -25,6 +25,7 @@ is the full demo. Prints figures; asserts nothing about time.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -43,7 +44,7 @@ TARGET_150_ITERATIONS, TARGET_150_SECONDS = 400, 180.0
 
 MONITORS = "-knee_snes_monitor -knee_snes_linesearch_monitor -knee_ksp_converged_reason"
 ITERATION = re.compile(r"^\s*(\d+) SNES Function norm\s+(\S+)")
-LAMBDA = re.compile(r"lambda=\s*(\S+)")
+LAMBDA = re.compile(r"(?<![a-z])lambda=\s*([^\s,]+)")
 STEP = re.compile(r"^step\s+(\d+)\s+load\s+(\S+)\s+newton\s+(\d+) it")
 FAILED = re.compile(r"the step to .* deg failed")
 
@@ -138,6 +139,26 @@ def attribute(steps: list[list[Attempt]]) -> dict[str, int]:
     return causes
 
 
+def run_demo(command: list[str], env: dict, log_path: str | None, lines: list[str]) -> None:
+    """Run the demo, appending its output lines to ``lines``; print its own progress lines
+    and write every line to ``log_path`` (if given) as it comes, so that a run stopped or
+    killed keeps them."""
+    keep = open(log_path, "w") if log_path else contextlib.nullcontext()
+    with (
+        keep as log,
+        subprocess.Popen(
+            command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        ) as run,
+    ):
+        for line in run.stdout:
+            lines.append(line.rstrip("\n"))
+            if log is not None:
+                log.write(line)
+                log.flush()
+            if not line.lstrip().startswith(("Line", "Linear")) and not ITERATION.match(line):
+                print(line, end="", flush=True)  # the demo's own progress lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--degrees", type=float, default=30.0)
@@ -148,6 +169,11 @@ def main() -> None:
     parser.add_argument("--output", default=None, help="the demo's output folder")
     parser.add_argument(
         "--log", default=None, help="write the demo's whole output (monitors included) here"
+    )
+    parser.add_argument(
+        "--from-log",
+        default=None,
+        help="no run: the figures of an earlier run from its --log file and --output folder",
     )
     args = parser.parse_args()
 
@@ -170,18 +196,15 @@ def main() -> None:
         command = ["mpirun", "-n", str(args.processes), *command]
     tic = time.perf_counter()
     lines: list[str] = []
-    with subprocess.Popen(
-        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    ) as run:
-        for line in run.stdout:
-            lines.append(line.rstrip("\n"))
-            if not line.lstrip().startswith(("Line", "Linear")) and not ITERATION.match(line):
-                print(line, end="", flush=True)  # the demo's own progress lines
+    if args.from_log:
+        lines = Path(args.from_log).read_text().splitlines()
+    else:
+        run_demo(command, env, args.log, lines)
     wall = time.perf_counter() - tic
-    if args.log:
-        Path(args.log).write_text("\n".join(lines) + "\n")
     if (output / "knee.json").exists():
         summary = json.loads((output / "knee.json").read_text())
+        if args.from_log:
+            wall = summary["seconds"]
     else:  # the demo was killed: the iterations from its monitor lines only
         print(f"\n(no {output / 'knee.json'}: the demo did not finish; figures from its output)")
         nan = float("nan")

@@ -71,6 +71,8 @@
 # `MATDEPTH_KNEE_AL_CARRY` from this fraction of the last step's (default 1; see
 # docs/measurements.md),
 # `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below),
+# `MATDEPTH_KNEE_AL_MAX_IT` the Newton iterations of one step's augmented-Lagrangian solves
+# together, after which the step is cut (default twice `MATDEPTH_KNEE_MAX_IT`; 0: no limit),
 # `MATDEPTH_KNEE_KEEP_LEFT=1` keeps each contact pair that left in the next Newton iteration's
 # Jacobian (active-set damping; below),
 # `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
@@ -139,6 +141,7 @@ fibre_toe = float(os.environ.get("MATDEPTH_KNEE_FIBRE_TOE", 0.04))
 al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
+al_max_it = int(os.environ.get("MATDEPTH_KNEE_AL_MAX_IT", 2 * max_newton))
 keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
@@ -494,13 +497,22 @@ if pseudo_transient > 0.0:
 # last step held faces of thigh tissue lying flat on the femur at the energy's kink, and Newton's
 # method stalled at 58° whatever the step (docs/measurements.md); the quadratic term has no
 # kink, and its pressures fall where a contact relaxes.
+#
+# A step's solves and pressure updates together get twice the Newton iterations one solve
+# may take (`max_iterations`, `MATDEPTH_KNEE_AL_MAX_IT`; the step to 147° takes 126 with its
+# two updates); where they are spent the step is cut, as after any failed attempt. Without
+# the bound, the step to 144° of an earlier run spent 46 minutes in its updates and in the
+# halvings of the updates whose solves failed (docs/measurements.md).
 
 # +
 h_boundary = stats["median_edge"]
 solver = problem
 augmented = None
 if al_tol_h > 0.0:
-    augmented = fm.AugmentedLagrangian(problem, tol_h=al_tol_h, h=h_boundary, pressure_term=al_term)
+    augmented = fm.AugmentedLagrangian(
+        problem, tol_h=al_tol_h, h=h_boundary, pressure_term=al_term,
+        max_iterations=al_max_it or None,
+    )  # fmt: skip
     solver = augmented
 # -
 
@@ -1173,6 +1185,7 @@ summary = {
     "mesh": stats,
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
+    "augmented_max_iterations": al_max_it,
     "fibre_toe": fibre_toe,
     "keep_left_pairs": keep_left,
     "target_iterations": target_iterations,

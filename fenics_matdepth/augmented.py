@@ -56,6 +56,7 @@ import dataclasses
 import typing
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 import numpy as np
 
@@ -68,14 +69,19 @@ __all__ = ["AugmentedLagrangian", "RigidModeDamping", "UzawaUpdate", "damping_en
 #: A failed inner solve after a pressure update is retried with the update halved, at most
 #: this many times.
 MAX_UPDATE_HALVINGS = 4
+#: The reason a solve ends with once its ``max_iterations`` are spent.
+DIVERGED_MAX_IT = int(PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT)
 #: A damped solve of RigidModeDamping that fails after k fell is retried from its anchor with
 #: k falling by the square root of the factor, at most this many times.
 MAX_DAMPED_RETRIES = 3
 
 
-def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
+def _absolute_tolerance(
+    problem, first_norm: float | None, inner_rtol: float, max_it: int | None = None
+):
     """While solving again after a first solve (after a pressure update, or a damped solve),
-    add an absolute Newton tolerance: ``inner_rtol`` times the first solve's initial residual.
+    add an absolute Newton tolerance: ``inner_rtol`` times the first solve's initial residual
+    (and stop after ``max_it`` iterations where that is fewer than the problem's limit).
 
     After an update the solve starts close to its solution, and a tolerance relative to
     that small initial residual falls below the residual's rounding floor (measured on the
@@ -83,7 +89,7 @@ def _absolute_tolerance(problem, first_norm: float | None, inner_rtol: float):
     3.9e-11 for relative targets of 4e-12 and below, while the first solve had started at
     2.2e-3)."""
     atol = None if first_norm is None else inner_rtol * first_norm
-    return looser_tolerances(problem, None, atol)
+    return looser_tolerances(problem, None, atol, max_it)
 
 
 @dataclasses.dataclass
@@ -124,6 +130,12 @@ class AugmentedLagrangian:
             the contact surface (``ContactOperator.max_penetration``).
         tol_h: the same relative to the mesh size ``h``; with both, the smaller applies.
         max_updates: pressure updates before a solve counts as failed.
+        max_iterations: the Newton iterations of one :meth:`solve`, its inner solves together
+            (None: no limit but each inner solve's own). Each inner solve may take what is left
+            of them; once they are spent the solve fails, and load stepping retries a smaller
+            step. Without it the updates, and the halvings of an update whose solve failed
+            (each solve up to the problem's iteration limit), can spend thousands of
+            iterations on one load step (measured on the knee at 144 deg, docs/measurements.md).
         h: mesh size (L); default: the median edge length of the exterior boundary triangles
             (as :func:`~fenics_matdepth.propose_penalty`).
         relaxation: ``omega`` of the Uzawa step (see the module's docstring), in (0, 1];
@@ -154,6 +166,7 @@ class AugmentedLagrangian:
         relaxation: float | None = None,
         inner_rtol: float = 1e-6,
         pressure_term: str = "linear",
+        max_iterations: int | None = None,
     ):
         contact = problem.contact
         if pressure_term not in ("linear", "quadratic"):
@@ -175,6 +188,9 @@ class AugmentedLagrangian:
         self.inner_rtol = float(inner_rtol)
         if max_updates < 0:
             raise ValueError(f"max_updates must be >= 0, got {max_updates}")
+        if max_iterations is not None and max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1 or None, got {max_iterations}")
+        self.max_iterations = max_iterations
         if h is None:
             x = boundary_triangles(problem.u.function_space.mesh)
             h = float(np.median(np.linalg.norm(x[:, [1, 2, 0]] - x, axis=2)))
@@ -193,6 +209,7 @@ class AugmentedLagrangian:
         self.history: list[UzawaUpdate] = []
         self.total_updates = 0
         self.total_newton_iterations = 0
+        self._spent = False  # whether the last solve spent its max_iterations
 
     @property
     def pressure(self) -> np.ndarray:
@@ -227,9 +244,9 @@ class AugmentedLagrangian:
         self.pressure = new
         return change
 
-    def _absolute_tolerance(self, first_norm: float | None):
+    def _absolute_tolerance(self, first_norm: float | None, max_it: int | None):
         """See :func:`_absolute_tolerance`."""
-        return _absolute_tolerance(self.problem, first_norm, self.inner_rtol)
+        return _absolute_tolerance(self.problem, first_norm, self.inner_rtol, max_it)
 
     def solve(self, raise_on_failure: bool = True) -> SolveResult:
         """Newton solves and pressure updates until the overlap is within the tolerance.
@@ -252,14 +269,22 @@ class AugmentedLagrangian:
         halvings = 0
         k = 0
         first_norm = None
+        self._spent = False
         while True:
-            with self._absolute_tolerance(first_norm):
+            left = None
+            if self.max_iterations is not None:
+                left = self.max_iterations - sum(r.iterations for r in results)
+                if left <= 0:  # (after a converged solve whose overlap is above the tolerance)
+                    self._spent, reason = True, DIVERGED_MAX_IT
+                    break
+            with self._absolute_tolerance(first_norm, left):
                 result = self.problem.solve(raise_on_failure=False)
             if first_norm is None and len(result.residual_norms):
                 first_norm = float(result.residual_norms[0])
             results.append(result)
             if not result.converged:
-                if previous is None or halvings >= MAX_UPDATE_HALVINGS:
+                self._spent = left is not None and result.iterations >= left
+                if previous is None or halvings >= MAX_UPDATE_HALVINGS or self._spent:
                     reason = result.reason
                     break
                 # halve the last update and solve again from the state before it
@@ -294,6 +319,15 @@ class AugmentedLagrangian:
 
     def failure_message(self, result: SolveResult) -> str:
         """Why :meth:`solve` failed."""
+        if self._spent:
+            return (
+                f"augmented Lagrangian: the {self.max_iterations} Newton iterations of a solve "
+                f"(max_iterations) spent in {len(self.history)} inner solves and "
+                f"{max(len(self.history) - 1, 0)} pressure updates, the overlap not yet within "
+                f"{self.tolerance:.3e}; residual norms: "
+                + ", ".join(f"{r:.3e}" for r in result.residual_norms[-5:])
+                + ". Reduce the load step (solve_load_steps cuts it automatically)"
+            )
         if result.reason == 0:
             last = self.history[-1]
             return (

@@ -9,6 +9,7 @@ from conftest import assert_fd_derivatives
 from test_kernels import polygon_mu, random_configs, split
 from test_validation import PATCH_PRESSURE, _report, _solve_patch
 
+from fenics_matdepth import AugmentedLagrangian
 from fenics_matdepth.contact.kernels import (
     augmented_pair_energy,
     pair_energy,
@@ -282,3 +283,51 @@ def test_rigid_mode_damping_floating_cube():
     assert damped["total_force"] == pytest.approx(PATCH_PRESSURE, rel=1e-6)
     assert np.allclose(damped["pressure"], plain["pressure"], rtol=1e-5, atol=0.0)
     assert damped["overlap"] == pytest.approx(plain["overlap"], rel=1e-4)
+
+
+def test_max_iterations_bounds_a_solve_with_its_updates():
+    """``max_iterations`` bounds the Newton iterations of one solve, its inner solves after the
+    pressure updates included: from a state that needs updates, a budget of the first inner
+    solve's iterations fails (within the budget, the pressures restored, the message naming
+    ``max_iterations``), and a budget above what the solve takes changes nothing."""
+    penalty = 10.0
+    tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)
+    # (without ContactProblem's damping of the upper cube, which only contact holds: its damped
+    # solves are several SNES solves in one inner solve, each bounded by what is left)
+    out = _solve_patch(penalty, augmented={"tol": tol, "max_updates": 10}, damp_free_bodies=False)
+    solver = out["solver"]
+    # from the solution with the pressures dropped, the overlap is the penalty's again, and
+    # the solve needs updates and more than one inner solve
+    state, zero = solver.u.x.array.copy(), np.zeros_like(solver.pressure)
+
+    def solve_from_state(max_iterations, raise_on_failure=False):
+        solver.u.x.array[:] = state
+        solver.u.x.scatter_forward()
+        solver.pressure = zero
+        solver.max_iterations = max_iterations
+        return solver.solve(raise_on_failure=raise_on_failure)
+
+    free = solve_from_state(None)
+    inner = [r.newton_iterations for r in solver.history]
+    _report(f"\nfrom the solution without pressures: {free.iterations} Newton it, inner {inner}")
+    assert free.converged and len(inner) >= 2 and sum(inner[1:]) >= 1
+
+    budget = inner[0]
+    short = solve_from_state(budget)
+    assert not short.converged
+    assert short.iterations <= budget
+    assert np.all(solver.pressure == 0.0)  # restored to the start
+    message = solver.failure_message(short)
+    assert "max_iterations" in message and f"the {budget} Newton iterations" in message
+    with pytest.raises(RuntimeError, match="max_iterations"):
+        solve_from_state(budget, raise_on_failure=True)
+
+    enough = solve_from_state(10 * free.iterations)
+    assert enough.converged
+    assert solver.contact.max_penetration() <= tol
+
+
+def test_max_iterations_must_be_positive():
+    out = _solve_patch(10.0)
+    with pytest.raises(ValueError, match="max_iterations"):
+        AugmentedLagrangian(out["solver"], tol=1.0, max_iterations=0)

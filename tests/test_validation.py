@@ -323,8 +323,10 @@ def _solve_patch(
     rtol: float = 1e-8,
     augmented: dict | None = None,
     damping: float | None = None,
+    damp_free_bodies: bool = True,
 ) -> dict:
-    """Uniform dead pressure on the upper cube's top face; returns interior measurements.
+    """Uniform dead pressure on the upper cube's top face; returns interior measurements
+    (``damp_free_bodies``: ContactProblem's, for the upper cube, which only contact holds).
 
     Rollers: u_z = 0 on the lower cube's bottom, u_x = 0 on x = 0 and u_y = 0 on y = 0 (both
     cubes); Poisson expansion is free and, with one material, the exact stress state is
@@ -385,7 +387,7 @@ def _solve_patch(
     )
     problem = fm.ContactProblem(
         residual, u, contact, bcs=bcs, energy=energy,
-        petsc_options={**NEWTON_OPTIONS, "snes_rtol": rtol},
+        petsc_options={**NEWTON_OPTIONS, "snes_rtol": rtol}, damp_free_bodies=damp_free_bodies,
     )  # fmt: skip
     solver = problem
     if damping is not None:
