@@ -1,0 +1,144 @@
+"""Where the knee's Newton steps go: the energy along each full Newton direction.
+
+Runs ``demos/demo_knee.py`` in this process (serially) with a hook at the start of each Newton
+iteration of its :class:`~fenics_matdepth.ContactProblem` (before the problem's own). At the
+iterate ``x`` it solves ``J y = F`` afresh (MUMPS LU: the full Newton direction, before any
+shortening by the collision detection or the line search) and prints one ``DIR`` line:
+
+- ``slope``: ``-F . y``, the energy's slope along ``x - s y`` at ``s = 0`` (negative: downhill);
+- ``|y|max``, the median of ``|y|`` over the vertices, and ``n90``: how many vertices hold 90 %
+  of ``|y|^2`` (a few: the step is a local mode of a few vertices);
+- the change of the bulk energy and of the contact energy at ``x - s y`` for ``s`` in
+  ``STEP_FRACTIONS`` (``nan``: a trial state the line search would reject, det F <= 0);
+- the five vertices with the longest step, with their body and reference position (mm).
+
+The state is restored before the problem's own callback runs, so the solve is the demo's. One
+line costs a factorisation and a dozen energy evaluations; ``DIAGNOSE_ITERATIONS`` (default
+60) bounds how many iterations are diagnosed. Settings as the demo's (``MATDEPTH_KNEE_*``);
+to look at one late step, resume from a checkpoint (``MATDEPTH_KNEE_RESUME=1``,
+``MATDEPTH_DEMO_OUTPUT`` the folder holding it) and stop after it
+(``MATDEPTH_KNEE_STOP_DEGREES``).
+
+Run: ``MATDEPTH_KNEE_DEGREES=6 MATDEPTH_KNEE_STEPS=2 scripts/fenicsx python3
+benchmarks/diagnose_directions.py``. Prints figures; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import runpy
+from pathlib import Path
+
+from petsc4py import PETSc
+
+import dolfinx
+import numpy as np
+
+import fenics_matdepth as fm
+from fenics_matdepth.step_control import find_contact_problem
+
+HERE = Path(__file__).resolve().parent
+DEMO = HERE.parent / "demos" / "demo_knee.py"
+#: the fractions s of the full Newton step at which the energies are evaluated
+STEP_FRACTIONS = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+
+
+class DirectionDiagnosis:
+    """The SNES update hook (see the module docstring); serial."""
+
+    def __init__(self, problem, cell_body: np.ndarray, body_names, limit: int):
+        self.problem = problem
+        # the problem's own update callback, called after the diagnosis
+        self.then, self.then_args, self.then_kwargs = problem.snes.getUpdate()
+        self.assembler = problem.assembler
+        self.limit = limit
+        self.count = 0
+        V = problem.u.function_space
+        n_cells = V.mesh.topology.index_map(3).size_local
+        blocks = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
+        self.body = np.full(blocks, -1)
+        cells = V.dofmap.list[:n_cells]
+        self.body[cells.ravel()] = np.repeat(cell_body[:n_cells], cells.shape[1])
+        self.names = body_names
+        self.X = V.tabulate_dof_coordinates()
+        self.ksp = PETSc.KSP().create(V.mesh.comm)
+        self.ksp.setType("preonly")
+        pc = self.ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+
+    def energies(self, x: PETSc.Vec) -> tuple[float, float]:
+        """The bulk and contact energies at ``x`` (NaN where an element inverts)."""
+        self.assembler.set_state(x)
+        if not self.assembler.min_det_F() > 0.0:
+            return np.nan, np.nan
+        bulk = dolfinx.fem.assemble_scalar(self.assembler.energy_form)
+        return float(bulk), float(self.problem.contact.energy())
+
+    def __call__(self, snes: PETSc.SNES, iteration: int) -> None:
+        try:
+            if self.count < self.limit:
+                self.count += 1
+                self.diagnose(snes, iteration)
+        finally:
+            self.then(snes, iteration, *self.then_args, **self.then_kwargs)
+
+    def diagnose(self, snes: PETSc.SNES, iteration: int) -> None:
+        x = snes.getSolution().copy()
+        F, y, trial = x.duplicate(), x.duplicate(), x.duplicate()
+        A = self.assembler.matrix.duplicate()
+        try:
+            self.assembler.set_state(x)
+            if not self.assembler.residual(x, F):
+                return
+            self.assembler.jacobian(A)
+            self.ksp.setOperators(A)
+            self.ksp.solve(F, y)
+            step = np.linalg.norm(y.getArray(readonly=True).reshape(-1, 3), axis=1)
+            shares = np.sort(step**2)[::-1].cumsum() / max(float(np.sum(step**2)), 1e-300)
+            bulk0, contact0 = self.energies(x)
+            profile = []
+            for s in STEP_FRACTIONS:
+                x.copy(trial)
+                trial.axpy(-s, y)
+                bulk, contact = self.energies(trial)
+                profile.append(f"{s:g}: {bulk - bulk0:+.3g}/{contact - contact0:+.3g}")
+            longest = ", ".join(
+                f"{step[i]:.2f} mm {self.names[self.body[i]]} at {np.round(self.X[i], 0).tolist()}"
+                for i in np.argsort(step)[::-1][:5]
+            )
+            print(
+                f"DIR it {iteration} |F| {snes.getFunctionNorm():.3e} slope "
+                f"{-F.dot(y):.3e} |y|max {step.max():.3g} mm median {np.median(step):.3g} mm "
+                f"n90 {int(np.searchsorted(shares, 0.9)) + 1} | d(bulk)/d(contact) energy "
+                f"{'; '.join(profile)} | longest {longest}",
+                flush=True,
+            )
+        finally:
+            self.assembler.set_state(x)  # the solve goes on from x
+            for vector in (x, F, y, trial):
+                vector.destroy()
+            A.destroy()
+
+
+def main() -> None:
+    solve_load_steps = fm.solve_load_steps
+    limit = int(os.environ.get("DIAGNOSE_ITERATIONS", 60))
+
+    def diagnosed(solver, *args, **kwargs):
+        problem = find_contact_problem(solver)
+        demo = inspect.currentframe().f_back.f_globals  # the demo's namespace
+        hook = DirectionDiagnosis(problem, demo["cell_body"], demo["leg"].BODIES, limit)
+        problem.snes.setUpdate(hook)
+        return solve_load_steps(solver, *args, **kwargs)
+
+    fm.solve_load_steps = diagnosed
+    try:
+        runpy.run_path(str(DEMO), run_name="__main__")
+    finally:
+        fm.solve_load_steps = solve_load_steps
+
+
+if __name__ == "__main__":
+    main()
