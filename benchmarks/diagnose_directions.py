@@ -25,21 +25,14 @@ benchmarks/diagnose_directions.py``. Prints figures; asserts nothing.
 
 from __future__ import annotations
 
-import inspect
 import os
-import runpy
-from pathlib import Path
 
 from petsc4py import PETSc
 
 import dolfinx
 import numpy as np
+from diagnose_knee import run_knee_with
 
-import fenics_matdepth as fm
-from fenics_matdepth.step_control import find_contact_problem
-
-HERE = Path(__file__).resolve().parent
-DEMO = HERE.parent / "demos" / "demo_knee.py"
 #: the fractions s of the full Newton step at which the energies are evaluated
 STEP_FRACTIONS = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
 
@@ -123,21 +116,13 @@ class DirectionDiagnosis:
 
 
 def main() -> None:
-    solve_load_steps = fm.solve_load_steps
     limit = int(os.environ.get("DIAGNOSE_ITERATIONS", 60))
 
-    def diagnosed(solver, *args, **kwargs):
-        problem = find_contact_problem(solver)
-        demo = inspect.currentframe().f_back.f_globals  # the demo's namespace
+    def install(problem, demo: dict) -> None:
         hook = DirectionDiagnosis(problem, demo["cell_body"], demo["leg"].BODIES, limit)
         problem.snes.setUpdate(hook)
-        return solve_load_steps(solver, *args, **kwargs)
 
-    fm.solve_load_steps = diagnosed
-    try:
-        runpy.run_path(str(DEMO), run_name="__main__")
-    finally:
-        fm.solve_load_steps = solve_load_steps
+    run_knee_with(install)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import inspect
 import runpy
+import typing
 from pathlib import Path
 
 from petsc4py import PETSc
@@ -290,17 +291,15 @@ def summarise(rows: list[dict]) -> None:
               f"contact Hessian: {max(r['fd_contact_error'] for r in rows):.2e}")  # fmt: skip
 
 
-def main() -> None:
-    diagnoses: list[IterationDiagnosis] = []
+def run_knee_with(install: typing.Callable[[typing.Any, dict], None]) -> None:
+    """Run ``demos/demo_knee.py`` in this process, calling ``install(problem, demo)`` with its
+    :class:`~fenics_matdepth.ContactProblem` and the demo's namespace before its load steps
+    (to set SNES hooks)."""
     solve_load_steps = fm.solve_load_steps
 
     def diagnosed(solver, *args, **kwargs):
-        problem = find_contact_problem(solver)
         demo = inspect.currentframe().f_back.f_globals  # the demo's namespace
-        fibres = FibreCells(demo["fibre"], demo["V"]) if "fibre" in demo else None
-        diagnosis = IterationDiagnosis(problem, fibres)
-        problem.snes.setMonitor(diagnosis)
-        diagnoses.append(diagnosis)
+        install(find_contact_problem(solver), demo)
         return solve_load_steps(solver, *args, **kwargs)
 
     fm.solve_load_steps = diagnosed
@@ -308,6 +307,20 @@ def main() -> None:
         runpy.run_path(str(DEMO), run_name="__main__")
     finally:
         fm.solve_load_steps = solve_load_steps
+
+
+def main() -> None:
+    diagnoses: list[IterationDiagnosis] = []
+
+    def install(problem, demo: dict) -> None:
+        fibres = FibreCells(demo["fibre"], demo["V"]) if "fibre" in demo else None
+        diagnosis = IterationDiagnosis(problem, fibres)
+        problem.snes.setMonitor(diagnosis)
+        diagnoses.append(diagnosis)
+
+    try:
+        run_knee_with(install)
+    finally:
         for diagnosis in diagnoses:
             summarise(diagnosis.rows)
 
