@@ -3,6 +3,11 @@ derivatives, the Uzawa moments, and the Uzawa driver on the contact patch test."
 
 from __future__ import annotations
 
+import types
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
 import numpy as np
 import pytest
 from conftest import assert_fd_derivatives
@@ -18,6 +23,7 @@ from fenics_matdepth.contact.kernels import (
 from fenics_matdepth.geometry.clip import (
     clip_shift,
 )
+from fenics_matdepth.tolerances import looser_tolerances
 
 EPS = 3.0
 FD_RTOL = 1e-6
@@ -331,3 +337,22 @@ def test_max_iterations_must_be_positive():
     out = _solve_patch(10.0)
     with pytest.raises(ValueError, match="max_iterations"):
         AugmentedLagrangian(out["solver"], tol=1.0, max_iterations=0)
+
+
+def test_looser_tolerances_lowers_the_iteration_limit_and_restores_it():
+    """The stage's iteration limit applies where it is below the problem's own, on a SNES and on
+    a DOLFINx NewtonSolver alike; the problem's own tolerances come back afterwards."""
+    snes = PETSc.SNES().create(MPI.COMM_SELF)
+    snes.setTolerances(rtol=1e-10, atol=1e-12, stol=0.0, max_it=100)
+    problem = types.SimpleNamespace(snes=snes)
+    with looser_tolerances(problem, 1e-6, None, 30):
+        assert snes.getTolerances() == (1e-6, 1e-12, 0.0, 30)
+    with looser_tolerances(problem, None, None, 300):  # above its own: unchanged
+        assert snes.getTolerances() == (1e-10, 1e-12, 0.0, 100)
+    assert snes.getTolerances() == (1e-10, 1e-12, 0.0, 100)
+    snes.destroy()
+    newton = types.SimpleNamespace(rtol=1e-8, atol=1e-10, max_it=50)
+    holder = types.SimpleNamespace(_solver=newton)
+    with looser_tolerances(holder, None, 1e-6, 20):
+        assert (newton.rtol, newton.atol, newton.max_it) == (1e-8, 1e-6, 20)
+    assert (newton.rtol, newton.atol, newton.max_it) == (1e-8, 1e-10, 50)
