@@ -322,9 +322,8 @@ class AugmentedLagrangian:
         if self._spent:
             return (
                 f"augmented Lagrangian: the {self.max_iterations} Newton iterations of a solve "
-                f"(max_iterations) spent in {len(self.history)} inner solves and "
-                f"{max(len(self.history) - 1, 0)} pressure updates, the overlap not yet within "
-                f"{self.tolerance:.3e}; residual norms: "
+                f"(max_iterations) spent, the overlap not yet within {self.tolerance:.3e}; "
+                "last residual norms: "
                 + ", ".join(f"{r:.3e}" for r in result.residual_norms[-5:])
                 + ". Reduce the load step (solve_load_steps cuts it automatically)"
             )

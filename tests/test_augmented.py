@@ -295,7 +295,8 @@ def test_max_iterations_bounds_a_solve_with_its_updates():
     """``max_iterations`` bounds the Newton iterations of one solve, its inner solves after the
     pressure updates included: from a state that needs updates, a budget of the first inner
     solve's iterations fails (within the budget, the pressures restored, the message naming
-    ``max_iterations``), and a budget above what the solve takes changes nothing."""
+    ``max_iterations``), a budget above what the solve takes changes nothing, and a budget below
+    1 is refused."""
     penalty = 10.0
     tol = 0.1 * PATCH_PRESSURE / (2.0 * penalty)
     # (without ContactProblem's damping of the upper cube, which only contact holds: its damped
@@ -331,12 +332,8 @@ def test_max_iterations_bounds_a_solve_with_its_updates():
     enough = solve_from_state(10 * free.iterations)
     assert enough.converged
     assert solver.contact.max_penetration() <= tol
-
-
-def test_max_iterations_must_be_positive():
-    out = _solve_patch(10.0)
     with pytest.raises(ValueError, match="max_iterations"):
-        AugmentedLagrangian(out["solver"], tol=1.0, max_iterations=0)
+        AugmentedLagrangian(solver.problem, tol=1.0, max_iterations=0)
 
 
 def test_looser_tolerances_lowers_the_iteration_limit_and_restores_it():
