@@ -38,6 +38,8 @@ import dolfinx
 import scipy.sparse
 import ufl
 
+from fenics_matdepth.contact.assembly import global_dirichlet_dofs
+
 HESSIANS = ("exact", "definite", "definite-after-slow", "definite-once")
 #: an eigenvalue counts as negative below this fraction of the element matrix's largest
 #: (the rigid motions' zero eigenvalues round to either sign)
@@ -78,6 +80,21 @@ def definite_correction(K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.einsum("cij,cj,ckj->cik", v, lift[negative], v), negative
 
 
+def cell_entries(matrix: dolfinx.la.MatrixCSR, broken_dofs: np.ndarray) -> np.ndarray:
+    """Where each cell's matrix lies in ``matrix.data`` (a form of :func:`element_matrices`):
+    ``matrix.data[entries]`` is the ``(n_cells, n, n)`` stack. Found once by filling the
+    matrix with its entries' positions and taking the blocks of the matrix with each cell's
+    dofs made consecutive (block diagonal, a block per cell)."""
+    n_cells, n = broken_dofs.shape
+    order = broken_dofs.ravel()
+    matrix.data[:] = np.arange(1, matrix.data.size + 1)  # 1-based: no position reads as 0
+    blocked = matrix.to_scipy().tocsr()[order][:, order]
+    cells = scipy.sparse.bsr_matrix(blocked, blocksize=(n, n))
+    cells.sort_indices()
+    assert np.array_equal(cells.indices, np.arange(n_cells))
+    return cells.data.astype(np.int64) - 1
+
+
 class DefiniteHessians:
     """The part that makes every cell's Hessian of ``energy`` positive semi-definite, rows and
     columns of Dirichlet dofs left out; :meth:`install` adds it to a ContactProblem's bulk
@@ -93,14 +110,14 @@ class DefiniteHessians:
         V = u.function_space
         if V.mesh.comm.size > 1:
             raise NotImplementedError("DefiniteHessians runs serially only")
-        self.form, self.broken_dofs = element_matrices(energy, u)
+        self.form, broken_dofs = element_matrices(energy, u)
         self.matrix = dolfinx.fem.create_matrix(self.form)
-        self.dofs = scalar_dofs(V, self.broken_dofs.shape[0])
+        self.dofs = scalar_dofs(V, broken_dofs.shape[0])
         self.size = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         fixed = np.zeros(self.size, dtype=bool)
-        for bc in bcs:
-            fixed[bc.dof_indices()[0]] = True
+        fixed[global_dirichlet_dofs(V.mesh.comm, V, bcs)] = True  # serial: global = local
         self.free = ~fixed[self.dofs]  # (n_cells, n)
+        self._entries = cell_entries(self.matrix, broken_dofs)
         #: whether the next Jacobians are corrected
         self.active = True
         #: Jacobians corrected, seconds spent, cells with a negative eigenvalue per Jacobian
@@ -126,14 +143,7 @@ class DefiniteHessians:
         """Each cell's Hessian of the energy at the current state, ``(n_cells, n, n)``."""
         self.matrix.set_value(0.0)
         dolfinx.fem.assemble_matrix(self.matrix, self.form)
-        order = self.broken_dofs.ravel()
-        n = self.broken_dofs.shape[1]
-        # the cells' dofs made consecutive: the matrix is block diagonal, a block per cell
-        blocked = self.matrix.to_scipy().tocsr()[order][:, order]
-        cells = scipy.sparse.bsr_matrix(blocked, blocksize=(n, n))
-        cells.sort_indices()
-        assert np.array_equal(cells.indices, np.arange(len(order) // n))
-        return cells.data
+        return self.matrix.data[self._entries]
 
     def correction(self) -> scipy.sparse.csr_matrix:
         """The correction at the current state, on the problem's dofs."""
@@ -166,13 +176,14 @@ class DefiniteHessians:
         SLOW_RATE, and (``once``) never two in a row; chained before the problem's own
         update callback."""
         then, args, kwargs = snes.getUpdate()
-        last = [None]
+        last = np.inf  # the last iteration's residual norm (each solve starts at iteration 0)
 
         def update(s: PETSc.SNES, iteration: int) -> None:
+            nonlocal last
             norm = s.getFunctionNorm()
-            slow = iteration > 0 and last[0] is not None and norm > SLOW_RATE * last[0]
+            slow = iteration > 0 and norm > SLOW_RATE * last
             self.active = slow and not (once and self.active)
-            last[0] = norm
+            last = norm
             then(s, iteration, *args, **kwargs)
 
         snes.setUpdate(update)
@@ -216,7 +227,7 @@ def main() -> None:
             print(
                 f"Hessians made definite ({args.hessian}): {definite.corrected} Jacobians in "
                 f"{definite.seconds:.1f} s; cells with a negative eigenvalue: median "
-                f"{np.median(counts):.0f}, most {max(counts)} of {definite.dofs.shape[0]}"
+                f"{np.median(counts):.0f}, most {max(counts)} of {len(definite.dofs)}"
             )
 
 
