@@ -9,6 +9,8 @@ afterwards sum in a fixed order and a run repeats to the bit.
 
 from __future__ import annotations
 
+import math
+
 from petsc4py import PETSc
 
 import dolfinx
@@ -29,6 +31,7 @@ __all__ = [
     "REFACTORISE_ITERATIONS",
     "SYMMETRY_RTOL",
     "BackOff",
+    "abs_sum",
     "choose_factorisation",
     "fix_summation_order",
     "is_mumps_direct",
@@ -178,6 +181,21 @@ LINEAR_SOLVE_FAILED = PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
 #: the 20 % ran out (INFOG(1) = -9) on 2 ranks in several runs of the floating cube of
 #: test_augmented.py, 100 % in none of 12. A failed LDL^T factorisation is retried with LU.
 LDLT_WORKSPACE_PERCENT = 100
+
+
+def abs_sum(vector: PETSc.Vec) -> float:
+    """The sum of the magnitudes of ``vector``'s entries (its 1-norm), correctly rounded on each
+    rank and then over the ranks in rank order: the same bits wherever the entries lie in
+    memory (collective).
+
+    PETSc's ``norm(NORM_1)`` is BLAS's asum, and OpenBLAS's asum sums in an order that depends
+    on the vector's address modulo 32 bytes, which varies from run to run (PETSc aligns to 16):
+    the same diagonal gave 0.5707081970830532 or ...533 as the shifted Jacobian's scale
+    (``SNESCallbacks._shifted_direction``), and from that step on two runs of one script parted
+    (tests/test_ccd_fold.py without the collision detection ended anywhere from z = -0.30 to
+    -0.006, or its load stepping gave up)."""
+    local = math.fsum(np.abs(vector.getArray(readonly=True)))
+    return math.fsum(vector.getComm().tompi4py().allgather(local))
 
 
 def is_mumps_direct(pc: PETSc.PC) -> bool:

@@ -255,7 +255,8 @@ class SNESCallbacks:
         pc_type = solver_pc.getType()
         A = self._A
         diagonal = A.getDiagonal()
-        scale = diagonal.norm(PETSc.NormType.NORM_1) / max(diagonal.getSize(), 1)
+        # (not diagonal.norm(NORM_1), whose rounding depends on where the vector lies)
+        scale = linear_solver.abs_sum(diagonal) / max(diagonal.getSize(), 1)
         diagonal.destroy()
         B = A.copy()
         ksp = PETSc.KSP().create(A.getComm())
