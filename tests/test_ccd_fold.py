@@ -58,8 +58,7 @@ def _end_motion(angle: float):
 
 def _fold(ccd: bool):
     """Folds the strip and loads it; returns (the upper layer's lowest point over the table,
-    ``_lowest_over_the_table``; the load steps, or None where load stepping gave up without
-    the collision detection)."""
+    ``_lowest_over_the_table``; the load steps)."""
     comm = MPI.COMM_WORLD
     X, cells = box_tetrahedra(CELLS, (0.0, 0.0, 0.0), (LENGTH, WIDTH, THICKNESS))
     mesh = create_tetrahedral_mesh(comm, cells, X)
@@ -97,12 +96,7 @@ def _fold(ccd: bool):
         g.interpolate(_end_motion(np.pi * fold))
         weight.value[2] = -WEIGHT * max(s * (FOLD_STEPS + 1) - FOLD_STEPS, 0.0)
 
-    try:
-        steps = fm.solve_load_steps(problem, set_load, num_steps=FOLD_STEPS + 1, progress=False)
-    except RuntimeError:
-        if ccd:
-            raise
-        steps = None  # load stepping gave up; u holds the last converged step
+    steps = fm.solve_load_steps(problem, set_load, num_steps=FOLD_STEPS + 1, progress=False)
     n = V.dofmap.index_map.size_local
     X = V.tabulate_dof_coordinates()[:n]
     x = X + u.x.array[: 3 * n].reshape(-1, 3)
@@ -123,18 +117,22 @@ def _lowest_over_the_table(X, x):
 @pytest.mark.serial
 def test_strip_folded_in_large_load_steps_passes_through_without_collision_detection():
     """The failure: with ``ccd=False`` the upper layer ends below the lower one, which is held
-    on the table (z = 0 its bottom), or the load steps give up. Serial only: where the uncapped
-    Newton steps end depends on the iterates' rounding, which differs from run to run (serially
-    on DOLFINx 0.11, four runs of this test ended at z = -0.2185, -0.2185, -0.2475 and -0.3047,
-    and one CI run's load steps gave up at load 0.974, the weight's stage, its Newton iterations
-    at the limit with residuals of 1e-6 to 3e-3; on 2 ranks the same set-up ended on the lower
-    layer, 0.040 above the table, measured once): this test only shows the set-up can fail."""
+    on the table (z = 0 its bottom). A run repeats to the bit (serially, five runs on DOLFINx
+    0.9 ended at z = -0.2700 after 5 load steps, three on DOLFINx 0.11 at -0.2880 after 11
+    load steps, each run's Newton iterates the same to the last bit). Until the scale of the shifted
+    Jacobian's step (``SNESCallbacks._shifted_direction``) was summed in a fixed order
+    (``linear_solver.abs_sum``) it was PETSc's 1-norm, whose rounding depends on where the
+    vector lies in memory: runs parted at the first shifted step and ended anywhere from
+    z = -0.30 to -0.006, or load stepping gave up, so this test accepted that too. Serial only:
+    where the uncapped Newton steps end depends on the iterates' rounding, which differs with
+    the partition (on 2 ranks the same set-up ended on the lower layer, 0.040 above the table,
+    measured once): this test only shows the set-up can fail."""
     lowest, steps = _fold(ccd=False)
-    assert steps is None or (np.isclose(steps[-1].load, 1.0) and lowest < 0.0), lowest
+    assert np.isclose(steps[-1].load, 1.0)
+    assert lowest < 0.0, lowest
     if MPI.COMM_WORLD.rank == 0:
         print(f"ccd=False: the upper layer's lowest point over the table at z = {lowest:.4f}; "
-              + ("load steps gave up" if steps is None else
-                 f"{len(steps)} load steps, cuts {sum(s.cuts for s in steps)}"))  # fmt: skip
+              f"{len(steps)} load steps, cuts {sum(s.cuts for s in steps)}")  # fmt: skip
 
 
 def test_strip_folded_in_large_load_steps_does_not_pass_through_itself():
