@@ -26,6 +26,7 @@ __all__ = [
     "KEPT_MAX_ITERATIONS",
     "KEPT_TRIES",
     "LDLT_WORKSPACE_PERCENT",
+    "NULL_PIVOT_RTOL",
     "LINEAR_SOLVE_FAILED",
     "MDOT_GEMV_OPTION",
     "REFACTORISE_ITERATIONS",
@@ -34,6 +35,7 @@ __all__ = [
     "abs_sum",
     "choose_factorisation",
     "fix_summation_order",
+    "inertia",
     "is_mumps_direct",
     "rigid_body_modes",
     "set_solver_options",
@@ -196,6 +198,55 @@ def abs_sum(vector: PETSc.Vec) -> float:
     -0.006, or its load stepping gave up)."""
     local = math.fsum(np.abs(vector.getArray(readonly=True)))
     return math.fsum(vector.getComm().tompi4py().allgather(local))
+
+
+#: :func:`inertia` counts a pivot of the LDL^T factorisation as null (a zero eigenvalue) below
+#: this fraction of the matrix's norm (MUMPS's CNTL(3); its default, 1e-5 of the machine
+#: epsilon, took the rounding of the exact zeros of a singular 40 x 40 matrix for negative
+#: eigenvalues)
+NULL_PIVOT_RTOL = 1e-12
+
+
+def inertia(A: PETSc.Mat) -> tuple[int, int]:
+    """How many eigenvalues of the symmetric ``A`` are negative, and how many are zero to
+    working precision: the negative and the null pivots of its LDL^T factorisation (MUMPS,
+    INFOG(12) and INFOG(28); Sylvester's law of inertia). Collective.
+
+    A Jacobian at a converged state with a negative eigenvalue is a saddle of the energy, an
+    unstable equilibrium: a real body would not stay there. (The problems' Jacobians hold 1 on
+    the Dirichlet diagonal and nothing else in those rows and columns: eigenvalues 1, so the
+    count is that of the energy's Hessian on the free dofs.)
+
+    Raises:
+        ValueError: ``A`` is not symmetric (to SYMMETRY_RTOL of its infinity norm).
+        RuntimeError: the factorisation failed (MUMPS's INFOG(1) is negative).
+    """
+    if not A.isSymmetric(SYMMETRY_RTOL * A.norm(PETSc.NormType.INFINITY)):
+        raise ValueError("the inertia is that of a symmetric matrix; this one is not")
+    B = A.copy()
+    B.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    ksp = PETSc.KSP().create(A.getComm())
+    try:
+        ksp.setOperators(B)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("cholesky")
+        pc.setFactorSolverType("mumps")
+        pc.setFactorSetUpSolverType()
+        F = pc.getFactorMatrix()
+        F.setMumpsIcntl(14, LDLT_WORKSPACE_PERCENT)
+        F.setMumpsIcntl(24, 1)  # detect null pivots (counted in INFOG(28)):
+        F.setMumpsCntl(3, -NULL_PIVOT_RTOL)  # those below this fraction of A's norm
+        try:
+            pc.setUp()
+        except PETSc.Error as err:
+            raise RuntimeError(
+                f"inertia: the LDL^T factorisation failed (MUMPS INFOG(1) = {F.getMumpsInfog(1)})"
+            ) from err
+        return int(F.getMumpsInfog(12)), int(F.getMumpsInfog(28))
+    finally:
+        ksp.destroy()
+        B.destroy()
 
 
 def is_mumps_direct(pc: PETSc.PC) -> bool:

@@ -357,6 +357,44 @@ def test_multiple_dot_products_do_not_depend_on_where_the_vectors_lie(child_env)
     assert distinct_results(PETSC_OPTIONS=f"-{linear_solver.MDOT_GEMV_OPTION} 1") > 1
 
 
+def _distributed(dense: np.ndarray) -> PETSc.Mat:
+    """``dense`` as an AIJ matrix over COMM_WORLD, rows split between the ranks."""
+    n = dense.shape[0]
+    A = PETSc.Mat().createAIJ([n, n], comm=MPI.COMM_WORLD)
+    A.setPreallocationNNZ(n)
+    A.setUp()
+    start, end = A.getOwnershipRange()
+    for i in range(start, end):
+        A.setValues(i, np.arange(n, dtype=PETSc.IntType), dense[i])
+    A.assemble()
+    return A
+
+
+def test_inertia_counts_negative_and_null_eigenvalues():
+    """``linear_solver.inertia`` against numpy's eigenvalues: a random symmetric indefinite
+    matrix (its negative eigenvalues counted), the same with two eigenvalues set to zero (the
+    null pivots), a definite one (no negative); a matrix that is not symmetric is refused."""
+    rng = np.random.default_rng(7)
+    n = 40
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    eigenvalues = rng.uniform(0.5, 2.0, n) * np.where(np.arange(n) % 5 == 0, -1.0, 1.0)
+    cases = {"indefinite": eigenvalues, "singular": np.where(np.arange(n) < 2, 0.0, eigenvalues)}
+    cases["definite"] = np.abs(eigenvalues)
+    for name, values in cases.items():
+        dense = (Q * values) @ Q.T
+        dense = 0.5 * (dense + dense.T)
+        computed = np.linalg.eigvalsh(dense)
+        expected = (int(np.sum(computed < -1e-8)), int(np.sum(np.abs(computed) <= 1e-8)))
+        A = _distributed(dense)
+        assert linear_solver.inertia(A) == expected, name
+        A.destroy()
+    assert expected == (0, 0) and cases["indefinite"].min() < 0
+    skew = _distributed(np.triu(rng.standard_normal((n, n))) + np.eye(n))
+    with pytest.raises(ValueError, match="not"):
+        linear_solver.inertia(skew)
+    skew.destroy()
+
+
 def test_sum_of_magnitudes_does_not_depend_on_where_the_vector_lies():
     """``linear_solver.abs_sum``, the 1-norm behind the shifted Jacobian's scale
     (``SNESCallbacks._shifted_direction``), gives the same bits wherever the vector lies: the
