@@ -7,6 +7,13 @@
   iteration whose residual fell less than half; ``definite-once`` the same, never in two
   iterations in a row. ``exact`` (the default): the demo's Jacobian.
 - ``--snes newtontr``: PETSc's trust-region Newton (dogleg) instead of the line search.
+- ``--escape-saddles``: after each converged step whose Jacobian has a negative eigenvalue
+  (:func:`fenics_matdepth.linear_solver.inertia`; ``diagnose_stability.py`` lists them), the
+  state is a saddle of the energy: it is moved along the eigenvector of the lowest eigenvalue
+  (SLEPc, shift-and-invert at a shift found by the inertia of shifted matrices), by
+  ``ESCAPE_TRAVEL`` median boundary edges at the vertex that moves most, to the side of lower
+  energy, and solved again at the same load; the step keeps the new state if that solve
+  converges (one ``ESCAPE`` line each).
 
 Serial only. The demo's output goes to stdout with ``bench_knee.py``'s monitors on; its
 figures come from ``bench_knee.py --from-log``::
@@ -46,6 +53,11 @@ HESSIANS = ("exact", "definite", "definite-after-slow", "definite-once")
 NEGATIVE_TOL = 1e-9
 #: ``definite-after-slow``: an iteration is slow when its residual norm fell less than this
 SLOW_RATE = 0.5
+#: ``--escape-saddles``: the longest vertex move along the unstable mode, in median boundary
+#: edges
+ESCAPE_TRAVEL = 0.25
+#: ``--escape-saddles``: eigenpairs computed nearest the shift below the lowest eigenvalue
+ESCAPE_PAIRS = 2
 
 
 def element_matrices(energy: ufl.Form, u: dolfinx.fem.Function) -> tuple:
@@ -189,10 +201,133 @@ class DefiniteHessians:
         snes.setUpdate(update)
 
 
+def lowest_eigenvalue_bracket(A: PETSc.Mat) -> float:
+    """A shift ``sigma`` just below the lowest eigenvalue of the symmetric ``A``, which has a
+    negative one: no eigenvalue below ``sigma``, one or more below ``0.9 sigma`` (the inertia
+    of ``A - sigma I``, by halving the exponent and then the interval)."""
+    from fenics_matdepth.linear_solver import inertia
+
+    def below(sigma: float) -> int:
+        B = A.copy()
+        B.shift(-sigma)
+        count = inertia(B)[0]
+        B.destroy()
+        return count
+
+    high = -1e-6  # an eigenvalue below it
+    while below(10.0 * high) > 0:
+        high *= 10.0
+    low = 10.0 * high  # none below it
+    while high / low < 0.9:
+        middle = -np.sqrt(low * high)
+        if below(middle) > 0:
+            high = middle
+        else:
+            low = middle
+    return low
+
+
+def unstable_mode(A: PETSc.Mat) -> tuple[float, PETSc.Vec]:
+    """The lowest eigenpair of the symmetric ``A``, which has a negative eigenvalue (SLEPc,
+    shift-and-invert with MUMPS at a shift just below it)."""
+    from slepc4py import SLEPc
+
+    eps = SLEPc.EPS().create(A.getComm())
+    eps.setOperators(A)
+    eps.setProblemType(SLEPc.EPS.ProblemType.HEP)
+    eps.setDimensions(ESCAPE_PAIRS)
+    eps.setTarget(lowest_eigenvalue_bracket(A))
+    eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+    st = eps.getST()
+    st.setType(SLEPc.ST.Type.SINVERT)
+    ksp = st.getKSP()
+    ksp.setType("preonly")
+    ksp.getPC().setType("cholesky")
+    ksp.getPC().setFactorSolverType("mumps")
+    eps.solve()
+    values = [eps.getEigenvalue(i).real for i in range(eps.getConverged())]
+    i = int(np.argmin(values))
+    vector = A.createVecRight()
+    eps.getEigenvector(i, vector)
+    eps.destroy()
+    return values[i], vector
+
+
+class SaddleEscape:
+    """``--escape-saddles`` (see the module docstring) around the demo's solver's ``solve``."""
+
+    def __init__(self, solver, problem, travel: float):
+        self.solver, self.problem, self.travel = solver, problem, travel
+        self.solve_once = solver.solve
+        self.saddles = self.escaped = self.iterations = 0
+
+    def solve(self, *args, **kwargs):
+        result = self.solve_once(*args, **kwargs)
+        if result.converged:
+            self.escape()
+        return result
+
+    def jacobian(self, x: PETSc.Vec) -> PETSc.Mat:
+        snes = self.problem.snes
+        residual = x.duplicate()
+        snes.computeFunction(x, residual)
+        residual.destroy()
+        A = snes.getJacobian()[0].duplicate()
+        snes.computeJacobian(x, A)
+        return A
+
+    def escape(self) -> None:
+        from fenics_matdepth.linear_solver import inertia
+
+        snes, u = self.problem.snes, self.problem.u
+        x = u.x.petsc_vec.copy()
+        A = self.jacobian(x)
+        negative, _ = inertia(A)
+        if negative == 0:
+            A.destroy()
+            return
+        self.saddles += 1
+        value, v = unstable_mode(A)
+        A.destroy()
+        longest = np.max(np.linalg.norm(v.getArray().reshape(-1, 3), axis=1))
+        v.scale(self.travel / longest)
+        energies = {}
+        for sign in (1.0, -1.0):
+            trial = x.copy()
+            trial.axpy(sign, v)
+            energies[sign] = snes.computeObjective(trial)
+            trial.destroy()
+        base = snes.computeObjective(x)
+        sign = min(energies, key=lambda k: energies[k] if np.isfinite(energies[k]) else np.inf)
+        state = u.x.array.copy()
+        u.x.array[:] += sign * v.getArray()
+        u.x.scatter_forward()
+        result = self.solve_once(raise_on_failure=False)
+        self.iterations += result.iterations
+        after = None
+        if result.converged:
+            self.escaped += 1
+            A = self.jacobian(u.x.petsc_vec)
+            after = inertia(A)[0]
+            A.destroy()
+        else:  # back to the saddle
+            u.x.array[:] = state
+            u.x.scatter_forward()
+        print(
+            f"ESCAPE {negative} negative (lowest {value:.3e}); energy {base:.6e}, "
+            f"moved {energies[sign] - base:+.3e}; solved again: {result.iterations} it, "
+            f"{'converged' if result.converged else 'failed'}, negative after: {after}",
+            flush=True,
+        )
+        x.destroy()
+        v.destroy()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--hessian", choices=HESSIANS, default="exact")
     parser.add_argument("--snes", choices=("newtonls", "newtontr"), default="newtonls")
+    parser.add_argument("--escape-saddles", action="store_true")
     parser.add_argument("--degrees", type=float, default=150.0)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--output", required=True, help="the demo's output folder")
@@ -205,6 +340,7 @@ def main() -> None:
     from diagnose_knee import run_knee_with
 
     installed: list[DefiniteHessians] = []
+    escapes: list[SaddleEscape] = []
 
     def install(problem, demo: dict) -> None:
         if args.snes == "newtontr":
@@ -218,6 +354,11 @@ def main() -> None:
             if args.hessian != "definite":
                 definite.follow(problem.snes, once=args.hessian == "definite-once")
             installed.append(definite)
+        if args.escape_saddles:
+            solver = demo["solver"]  # the augmented Lagrangian (or the problem)
+            escape = SaddleEscape(solver, problem, ESCAPE_TRAVEL * demo["h_boundary"])
+            solver.solve = escape.solve
+            escapes.append(escape)
 
     try:
         run_knee_with(install)
@@ -228,6 +369,11 @@ def main() -> None:
                 f"Hessians made definite ({args.hessian}): {definite.corrected} Jacobians in "
                 f"{definite.seconds:.1f} s; cells with a negative eigenvalue: median "
                 f"{np.median(counts):.0f}, most {max(counts)} of {len(definite.dofs)}"
+            )
+        for escape in escapes:
+            print(
+                f"saddles: {escape.saddles} converged steps, {escape.escaped} left to a "
+                f"converged state in {escape.iterations} Newton iterations"
             )
 
 

@@ -108,3 +108,32 @@ def test_no_correction_at_rest(variants):
     definite = variants.DefiniteHessians(u, bcs, energy)
     C, negative = variants.definite_correction(definite.cell_matrices())
     assert negative.size == 0 and C.shape == (0, 12, 12)
+
+
+def test_unstable_mode_is_the_lowest_eigenpair(variants):
+    """``--escape-saddles``' eigenpair: on a symmetric matrix of known eigenvectors with two
+    negative eigenvalues among positive ones from 0.01 to 100, the shift found lies below the
+    lowest eigenvalue within the bracket's 10 %, and the pair returned is the lowest one (its
+    vector the known one)."""
+    from petsc4py import PETSc
+
+    rng = np.random.default_rng(1)
+    n = 60
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    values = rng.uniform(0.01, 100.0, n)
+    values[5], values[9] = -0.37, -0.02
+    dense = (Q * values) @ Q.T
+    A = PETSc.Mat().createAIJ([n, n], comm=MPI.COMM_SELF)
+    A.setPreallocationNNZ(n)
+    A.setUp()
+    for i in range(n):
+        A.setValues(i, np.arange(n, dtype=PETSc.IntType), 0.5 * (dense[i] + dense[:, i]))
+    A.assemble()
+    shift = variants.lowest_eigenvalue_bracket(A)
+    assert -0.37 / 0.9 <= shift < -0.37
+    value, vector = variants.unstable_mode(A)
+    w = vector.getArray()
+    assert value == pytest.approx(-0.37, rel=1e-8)
+    assert abs(w @ Q[:, 5]) / np.linalg.norm(w) == pytest.approx(1.0, abs=1e-8)
+    A.destroy()
+    vector.destroy()
