@@ -291,15 +291,18 @@ def summarise(rows: list[dict]) -> None:
               f"contact Hessian: {max(r['fd_contact_error'] for r in rows):.2e}")  # fmt: skip
 
 
-def run_knee_with(install: typing.Callable[[typing.Any, dict], None]) -> None:
+def run_knee_with(install: typing.Callable[[typing.Any, dict], typing.Any]) -> None:
     """Run ``demos/demo_knee.py`` in this process, calling ``install(problem, demo)`` with its
     :class:`~fenics_matdepth.ContactProblem` and the demo's namespace before its load steps
-    (to set SNES hooks)."""
+    (to set SNES hooks). Where ``install`` returns a callable, that is given the demo's writer
+    of each converged step and returns the writer the load steps call instead."""
     solve_load_steps = fm.solve_load_steps
 
     def diagnosed(solver, *args, **kwargs):
         demo = inspect.currentframe().f_back.f_globals  # the demo's namespace
-        install(find_contact_problem(solver), demo)
+        wrap = install(find_contact_problem(solver), demo)
+        if wrap is not None:
+            kwargs["writer"] = wrap(kwargs.get("writer"))
         return solve_load_steps(solver, *args, **kwargs)
 
     fm.solve_load_steps = diagnosed

@@ -14,47 +14,48 @@ about 0.2 s on the coarse leg (serial or parallel).
 
 from __future__ import annotations
 
-import runpy
+from petsc4py import PETSc
 
-from diagnose_knee import DEMO
+from diagnose_knee import run_knee_with
 
-import fenics_matdepth as fm
 from fenics_matdepth.linear_solver import inertia
-from fenics_matdepth.step_control import find_contact_problem
+
+
+def jacobian_at(problem) -> PETSc.Mat:
+    """The problem's Jacobian at its current state ``problem.u`` (the last one its solve
+    assembled is that of the iterate before), in a new matrix of the problem's pattern."""
+    snes = problem.snes
+    x = problem.u.x.petsc_vec.copy()
+    residual = x.duplicate()
+    snes.computeFunction(x, residual)
+    A = snes.getJacobian()[0].duplicate()
+    snes.computeJacobian(x, A)
+    residual.destroy()
+    x.destroy()
+    return A
 
 
 def main() -> None:
-    solve_load_steps = fm.solve_load_steps
     rows: list[tuple[float, int, int]] = []
 
-    def checked(solver, *args, **kwargs):
-        problem = find_contact_problem(solver)
-        snes, writer = problem.snes, kwargs["writer"]
-        residual = problem.u.x.petsc_vec.duplicate()
+    def install(problem, demo: dict):
+        def wrap(writer):
+            def write(t: float) -> None:
+                A = jacobian_at(problem)
+                negative, null = inertia(A)
+                A.destroy()
+                rows.append((t, negative, null))
+                if problem.u.function_space.mesh.comm.rank == 0:
+                    print(f"STABILITY load {t:.5f}: {negative} negative, {null} null eigenvalues")
+                writer(t)
 
-        def write(t: float) -> None:
-            # the Jacobian at the converged state (the solve's last one is that of the
-            # iterate before it), in a copy of the problem's matrix and pattern
-            x = problem.u.x.petsc_vec.copy()
-            snes.computeFunction(x, residual)
-            A = snes.getJacobian()[0].duplicate()
-            snes.computeJacobian(x, A)
-            negative, null = inertia(A)
-            A.destroy()
-            x.destroy()
-            rows.append((t, negative, null))
-            if problem.u.function_space.mesh.comm.rank == 0:
-                print(f"STABILITY load {t:.5f}: {negative} negative, {null} null eigenvalues")
-            writer(t)
+            return write
 
-        kwargs["writer"] = write
-        return solve_load_steps(solver, *args, **kwargs)
+        return wrap
 
-    fm.solve_load_steps = checked
     try:
-        runpy.run_path(str(DEMO), run_name="__main__")
+        run_knee_with(install)
     finally:
-        fm.solve_load_steps = solve_load_steps
         saddles = [f"{t:.4f} ({n})" for t, n, _ in rows if n > 0]
         print(
             f"STABILITY summary: {len(rows)} converged steps, {len(saddles)} saddles "

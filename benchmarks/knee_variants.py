@@ -267,21 +267,14 @@ class SaddleEscape:
             self.escape()
         return result
 
-    def jacobian(self, x: PETSc.Vec) -> PETSc.Mat:
-        snes = self.problem.snes
-        residual = x.duplicate()
-        snes.computeFunction(x, residual)
-        residual.destroy()
-        A = snes.getJacobian()[0].duplicate()
-        snes.computeJacobian(x, A)
-        return A
-
     def escape(self) -> None:
+        from diagnose_stability import jacobian_at
+
         from fenics_matdepth.linear_solver import inertia
 
         snes, u = self.problem.snes, self.problem.u
         x = u.x.petsc_vec.copy()
-        A = self.jacobian(x)
+        A = jacobian_at(self.problem)
         negative, _ = inertia(A)
         if negative == 0:
             A.destroy()
@@ -307,7 +300,7 @@ class SaddleEscape:
         after = None
         if result.converged:
             self.escaped += 1
-            A = self.jacobian(u.x.petsc_vec)
+            A = jacobian_at(self.problem)
             after = inertia(A)[0]
             A.destroy()
         else:  # back to the saddle
