@@ -46,6 +46,7 @@ import scipy.sparse
 import ufl
 
 from fenics_matdepth.contact.assembly import global_dirichlet_dofs
+from fenics_matdepth.linear_solver import inertia
 
 HESSIANS = ("exact", "definite", "definite-after-slow", "definite-once")
 #: an eigenvalue counts as negative below this fraction of the element matrix's largest
@@ -205,7 +206,6 @@ def lowest_eigenvalue_bracket(A: PETSc.Mat) -> float:
     """A shift ``sigma`` just below the lowest eigenvalue of the symmetric ``A``, which has a
     negative one: no eigenvalue below ``sigma``, one or more below ``0.9 sigma`` (the inertia
     of ``A - sigma I``, by halving the exponent and then the interval)."""
-    from fenics_matdepth.linear_solver import inertia
 
     def below(sigma: float) -> int:
         B = A.copy()
@@ -257,7 +257,7 @@ class SaddleEscape:
     """``--escape-saddles`` (see the module docstring) around the demo's solver's ``solve``."""
 
     def __init__(self, solver, problem, travel: float):
-        self.solver, self.problem, self.travel = solver, problem, travel
+        self.problem, self.travel = problem, travel
         self.solve_once = solver.solve
         self.saddles = self.escaped = self.iterations = 0
 
@@ -269,8 +269,6 @@ class SaddleEscape:
 
     def escape(self) -> None:
         from diagnose_stability import jacobian_at
-
-        from fenics_matdepth.linear_solver import inertia
 
         snes, u = self.problem.snes, self.problem.u
         x = u.x.petsc_vec.copy()

@@ -159,6 +159,11 @@ fix_summation_order()
 SYMMETRY_RTOL = 1e-10
 
 
+def _is_symmetric(A: PETSc.Mat) -> bool:
+    """Whether ``A`` equals its transpose to SYMMETRY_RTOL of its infinity norm (collective)."""
+    return bool(A.isSymmetric(SYMMETRY_RTOL * A.norm(PETSc.NormType.INFINITY)))
+
+
 def choose_factorisation(pc: PETSc.PC, A: PETSc.Mat) -> bool:
     """Factorise the symmetric ``A`` as LDL^T, any other as LU (MUMPS both; collective).
 
@@ -166,7 +171,7 @@ def choose_factorisation(pc: PETSc.PC, A: PETSc.Mat) -> bool:
     ``cholesky`` or ``lu`` accordingly (a change of type redoes the symbolic factorisation).
     Returns whether ``A`` is symmetric.
     """
-    symmetric = bool(A.isSymmetric(SYMMETRY_RTOL * A.norm(PETSc.NormType.INFINITY)))
+    symmetric = _is_symmetric(A)
     A.setOption(PETSc.Mat.Option.SYMMETRIC, symmetric)
     wanted = "cholesky" if symmetric else "lu"
     if pc.getType() != wanted:
@@ -221,7 +226,7 @@ def inertia(A: PETSc.Mat) -> tuple[int, int]:
         ValueError: ``A`` is not symmetric (to SYMMETRY_RTOL of its infinity norm).
         RuntimeError: the factorisation failed (MUMPS's INFOG(1) is negative).
     """
-    if not A.isSymmetric(SYMMETRY_RTOL * A.norm(PETSc.NormType.INFINITY)):
+    if not _is_symmetric(A):
         raise ValueError("the inertia is that of a symmetric matrix; this one is not")
     B = A.copy()
     B.setOption(PETSc.Mat.Option.SYMMETRIC, True)

@@ -212,6 +212,22 @@ def assert_fd_derivatives(
     return value
 
 
+def aij_matrix(dense: np.ndarray, comm: MPI.Comm = MPI.COMM_WORLD):
+    """``dense`` (square) as a PETSc AIJ matrix over ``comm``, its rows split between the
+    ranks."""
+    from petsc4py import PETSc
+
+    n = dense.shape[0]
+    A = PETSc.Mat().createAIJ([n, n], comm=comm)
+    A.setPreallocationNNZ(n)
+    A.setUp()
+    start, end = A.getOwnershipRange()
+    for i in range(start, end):
+        A.setValues(i, np.arange(n, dtype=PETSc.IntType), dense[i])
+    A.assemble()
+    return A
+
+
 def dense_matrix(A) -> np.ndarray:
     """An assembled PETSc matrix as a dense array, on every rank (collective; small models)."""
     indptr, indices, values = A.getValuesCSR()

@@ -21,7 +21,13 @@ import dolfinx
 import numpy as np
 import pytest
 import ufl
-from conftest import clamped_and_moved, merged_mesh, neo_hookean, neo_hookean_residual
+from conftest import (
+    aij_matrix,
+    clamped_and_moved,
+    merged_mesh,
+    neo_hookean,
+    neo_hookean_residual,
+)
 
 import fenics_matdepth as fm
 from fenics_matdepth import linear_solver, snes_callbacks, system_assembler
@@ -357,19 +363,6 @@ def test_multiple_dot_products_do_not_depend_on_where_the_vectors_lie(child_env)
     assert distinct_results(PETSC_OPTIONS=f"-{linear_solver.MDOT_GEMV_OPTION} 1") > 1
 
 
-def _distributed(dense: np.ndarray) -> PETSc.Mat:
-    """``dense`` as an AIJ matrix over COMM_WORLD, rows split between the ranks."""
-    n = dense.shape[0]
-    A = PETSc.Mat().createAIJ([n, n], comm=MPI.COMM_WORLD)
-    A.setPreallocationNNZ(n)
-    A.setUp()
-    start, end = A.getOwnershipRange()
-    for i in range(start, end):
-        A.setValues(i, np.arange(n, dtype=PETSc.IntType), dense[i])
-    A.assemble()
-    return A
-
-
 def test_inertia_counts_negative_and_null_eigenvalues():
     """``linear_solver.inertia`` against numpy's eigenvalues: a random symmetric indefinite
     matrix (its negative eigenvalues counted), the same with two eigenvalues set to zero (the
@@ -385,11 +378,11 @@ def test_inertia_counts_negative_and_null_eigenvalues():
         dense = 0.5 * (dense + dense.T)
         computed = np.linalg.eigvalsh(dense)
         expected = (int(np.sum(computed < -1e-8)), int(np.sum(np.abs(computed) <= 1e-8)))
-        A = _distributed(dense)
+        A = aij_matrix(dense)
         assert linear_solver.inertia(A) == expected, name
         A.destroy()
     assert expected == (0, 0) and cases["indefinite"].min() < 0
-    skew = _distributed(np.triu(rng.standard_normal((n, n))) + np.eye(n))
+    skew = aij_matrix(np.triu(rng.standard_normal((n, n))) + np.eye(n))
     with pytest.raises(ValueError, match="not"):
         linear_solver.inertia(skew)
     skew.destroy()
