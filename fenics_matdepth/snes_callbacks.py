@@ -29,6 +29,10 @@ __all__ = [
     "NO_PROGRESS_RTOL",
     "DIRICHLET_SNAP",
     "ROUNDING_FLOOR_RTOL",
+    "LIMIT_SHIFT_BACK",
+    "LIMIT_SHIFT_GROWTH",
+    "LIMIT_SHIFT_START",
+    "LIMIT_SHIFT_TRIES",
     "SHIFT_GROWTH",
     "SHIFT_START",
     "SHIFT_TRIES",
@@ -82,6 +86,17 @@ SHIFT_START = 1e-6
 SHIFT_GROWTH = 10.0
 SHIFT_TRIES = 8
 
+#: With a ``step_limit`` (SNESCallbacks.step_limit), a Newton step moving a degree of freedom
+#: further is replaced by the step of ``J + mu I``, mu (relative to the mean absolute diagonal
+#: of J, as above) starting at the last accepted one divided by LIMIT_SHIFT_BACK (at first
+#: LIMIT_SHIFT_START) and growing LIMIT_SHIFT_GROWTH-fold until the step keeps within the
+#: limit, has no negative pivot and goes downhill, at most LIMIT_SHIFT_TRIES factorisations.
+#: On the knee past 144 deg the accepted mu ranged over 1e-4 to 4e2 (docs/measurements.md).
+LIMIT_SHIFT_START = 1e-4
+LIMIT_SHIFT_BACK = 4.0
+LIMIT_SHIFT_GROWTH = 4.0
+LIMIT_SHIFT_TRIES = 14
+
 #: While the Dirichlet dofs move onto their values (through the Newton steps, see
 #: SystemAssembler) only the residual norm can judge a step; once an iterate is within this
 #: fraction of the solve's initial distance from them, it is set onto them (unless an element
@@ -114,6 +129,35 @@ class SNESCallbacks:
     dirichlet_snaps = 0
     #: None, or a :class:`~fenics_matdepth.PseudoTransient` shifting each Jacobian
     pseudo_transient = None
+    _step_limit = None
+    #: the shift (relative) of the last step kept within the step limit
+    _limit_shift = 0.0
+
+    @property
+    def step_limit(self) -> float | None:
+        """None (the default), or the longest move of one degree of freedom in a Newton step
+        the energy judges (a length, in the unit of the displacement).
+
+        A longer Newton step (the Dirichlet dofs on their values, a direct MUMPS solver) is
+        replaced by the Levenberg-Marquardt step ``(J + mu I)^-1 F`` with the smallest mu of
+        a ladder (LIMIT_SHIFT_START) whose step keeps within the limit, has no negative pivot
+        and goes downhill; where no mu does, the Newton step stays and the line search
+        shortens it. A trust region of fixed radius: where the Jacobian is nearly singular,
+        the step turns towards the energy's descent direction instead of only getting
+        shorter. Each replaced step counts in ``shifted_steps`` and costs one factorisation
+        per rung tried. Opt-in: on the knee it took 14 % fewer Newton iterations in converged
+        steps (983 and 990 against 1,147 to 1,271), not fewer in all (docs/measurements.md).
+
+        Raises:
+            ValueError: if set to anything but None or a positive finite number.
+        """
+        return self._step_limit
+
+    @step_limit.setter
+    def step_limit(self, value: float | None) -> None:
+        if value is not None and not (np.isfinite(value) and value > 0.0):
+            raise ValueError(f"step_limit is None or a positive finite length, got {value!r}")
+        self._step_limit = None if value is None else float(value)
 
     def _set_state(self, x: PETSc.Vec) -> None:
         self.assembler.set_state(x)
@@ -240,15 +284,27 @@ class SNESCallbacks:
         if not downhill and self._bcs_met and self._shifted_direction(y):
             self._merit_is_energy = True
             return True
+        limit = self._step_limit
+        if (
+            limit is not None
+            and downhill
+            and self._bcs_met
+            and self._energy_merit_allowed
+            and y.norm(PETSc.NormType.NORM_INFINITY) > limit
+            and self._shifted_direction(y, limit)
+        ):
+            self._merit_is_energy = True
+            return True
         self._merit_is_energy = self._energy_merit_allowed and self._bcs_met and downhill
         return False
 
-    def _shifted_direction(self, y: PETSc.Vec) -> bool:
+    def _shifted_direction(self, y: PETSc.Vec, limit: float | None = None) -> bool:
         """Overwrite ``y`` with ``(J + mu I)^-1 F`` for the smallest mu of SHIFT_START *
         SHIFT_GROWTH^k (relative to the mean absolute diagonal of J) whose factorisation has no
-        negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective).
-        Returns False, leaving ``y``, where the linear solver is not MUMPS or no mu up to the
-        last try gives such a step."""
+        negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective);
+        with a ``limit``, of the ladder of LIMIT_SHIFT_START whose step also moves no entry
+        further than ``limit``. Returns False, leaving ``y``, where the linear solver is not
+        MUMPS or no mu up to the last try gives such a step."""
         solver_pc = self.snes.getKSP().getPC()
         if not linear_solver.is_mumps_direct(solver_pc):
             return False
@@ -272,18 +328,29 @@ class SNESCallbacks:
             factor = pc.getFactorMatrix()
             factor.setMumpsIcntl(13, 1)  # negative pivots counted on the root node too
             factor.setMumpsIcntl(14, linear_solver.LDLT_WORKSPACE_PERCENT)
-            mu, added = SHIFT_START * scale, 0.0
-            for _ in range(SHIFT_TRIES):
+            start, growth, tries = SHIFT_START, SHIFT_GROWTH, SHIFT_TRIES
+            if limit is not None:
+                start = max(self._limit_shift / LIMIT_SHIFT_BACK, LIMIT_SHIFT_START)
+                growth, tries = LIMIT_SHIFT_GROWTH, LIMIT_SHIFT_TRIES
+            mu, added = start * scale, 0.0
+            for _ in range(tries):
                 B.shift(mu - added)  # the matrix's new state makes the PC factorise again
                 added = mu
                 with self._watch("linear_solve"):
                     ksp.solve(self._b, trial)
                 negative = factor.getMumpsInfog(12) if pc_type == "cholesky" else 0
-                if ksp.getConvergedReason() > 0 and negative == 0 and trial.dot(self._b) > 0.0:
+                if (
+                    ksp.getConvergedReason() > 0
+                    and negative == 0
+                    and trial.dot(self._b) > 0.0
+                    and (limit is None or trial.norm(PETSc.NormType.NORM_INFINITY) <= limit)
+                ):
+                    if limit is not None:
+                        self._limit_shift = mu / scale
                     trial.copy(y)
                     self.shifted_steps += 1
                     return True
-                mu *= SHIFT_GROWTH
+                mu *= growth
             return False
         finally:
             # the borrowed PC and factor go before their KSP: on more than one rank petsc4py

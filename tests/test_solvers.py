@@ -638,6 +638,64 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     assert petsc_garbage_entries(mesh.comm, capfd) == 0
 
 
+def _double_well_block(comm, a: float):
+    """A soft unit block (no contact, no Dirichlet condition) in the double well
+    ``c (u_x^2 - a^2)^2 + k (u_y^2 + u_z^2)``: its minima are u = (+-a, 0, 0)."""
+    x, c = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    mesh = create_tetrahedral_mesh(comm, c, x)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    psi, _ = neo_hookean(u, E, NU)
+    psi += 1000.0 * (u[0] ** 2 - a**2) ** 2 + 10.0 * (u[1] ** 2 + u[2] ** 2)
+    energy = psi * ufl.dx
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
+    return u, ContactProblem(residual, u, contact, energy=energy)
+
+
+@pytest.mark.parametrize("limit", [None, 0.02])
+def test_a_step_limit_keeps_each_newton_step_within_it(limit):
+    """With ``step_limit`` no Newton step moves a dof further than the limit, and the solve
+    reaches the same minimum. The double well from u_x = 3a: the Newton steps of the quartic
+    are a / 10 and longer (the first 0.092 for a = 0.1), so without the limit the check of the
+    step lengths fails (the case None asserts that it would)."""
+    a = 0.1
+    u, problem = _double_well_block(MPI.COMM_WORLD, a)
+    problem.step_limit = limit
+    u.x.array[0::3] = 3.0 * a
+    moves = []
+    last = u.x.petsc_vec.copy()
+
+    def monitor(snes, k, fnorm):
+        x = snes.getSolution()
+        if k > 0:
+            last.axpy(-1.0, x)
+            moves.append(last.norm(PETSc.NormType.NORM_INFINITY))
+        x.copy(last)
+
+    problem.snes.setMonitor(monitor)
+    result = problem.solve()
+    last.destroy()
+    assert result.converged
+    assert np.allclose(u.x.array[0::3], a, rtol=1e-8)
+    assert np.allclose(u.x.array.reshape(-1, 3)[:, 1:], 0.0, atol=1e-9)
+    if limit is None:
+        assert max(moves) > 0.02 and result.shifted_steps == 0
+    else:
+        assert max(moves) <= limit * (1.0 + 1e-12), moves
+        assert result.shifted_steps >= 1
+    problem.destroy()
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, np.nan, np.inf])
+def test_a_step_limit_must_be_a_positive_length(value):
+    _, problem = _double_well_block(MPI.COMM_WORLD, 0.1)
+    with pytest.raises(ValueError, match="step_limit"):
+        problem.step_limit = value
+    assert problem.step_limit is None
+    problem.destroy()
+
+
 @pytest.mark.parametrize("how", ["destroy", "with"])
 @pytest.mark.parametrize("kind", ["snes", "newton"])
 def test_a_destroyed_problem_is_freed(capfd, how, kind):
