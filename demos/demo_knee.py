@@ -75,6 +75,8 @@
 # together, after which the step is cut (default twice `MATDEPTH_KNEE_MAX_IT`; 0: no limit),
 # `MATDEPTH_KNEE_KEEP_LEFT=1` keeps each contact pair that left in the next Newton iteration's
 # Jacobian (active-set damping; below),
+# `MATDEPTH_KNEE_STEP_LIMIT` the longest move of a vertex coordinate in one Newton step, in
+# median boundary edges (default 0: no limit; below),
 # `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
 # (below; the contact fields of every step go to `knee_contact.xdmf` either way);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
@@ -143,6 +145,7 @@ al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
 al_max_it = int(os.environ.get("MATDEPTH_KNEE_AL_MAX_IT", 2 * max_newton))
 keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
+step_limit = float(os.environ.get("MATDEPTH_KNEE_STEP_LIMIT", 0.0))
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -476,6 +479,11 @@ problem.assembler.keep_left_pairs(keep_left)
 # with the residual (pseudo-transient continuation, fm.PseudoTransient; docs/solvers.md)
 if pseudo_transient > 0.0:
     problem.pseudo_transient = fm.PseudoTransient(sigma0=pseudo_transient)
+# MATDEPTH_KNEE_STEP_LIMIT=edges: a Newton step moving a vertex coordinate further than that
+# many median boundary edges becomes a Levenberg-Marquardt step within it
+# (ContactProblem.step_limit; measured in docs/measurements.md)
+if step_limit > 0.0:
+    problem.step_limit = step_limit * stats["median_edge"]
 # -
 
 # ### The augmented Lagrangian
@@ -1188,6 +1196,7 @@ summary = {
     "augmented_max_iterations": al_max_it,
     "fibre_toe": fibre_toe,
     "keep_left_pairs": keep_left,
+    "step_limit_edges": step_limit,
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "min_scale": min_scale,
