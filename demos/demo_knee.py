@@ -483,8 +483,8 @@ if pseudo_transient > 0.0:
 # many median boundary edges (default 2) becomes a Levenberg-Marquardt step within it
 # (ContactProblem.step_limit). Past 100 deg the pinched soft tissue behind the knee makes the
 # Jacobian nearly singular and half the Newton steps move a vertex further than an edge, up to
-# metres, along that soft mode; the limit of 2 edges took 876 to 1,103 Newton iterations to
-# 150 deg in three runs, against 1,153 to 1,384 without it (docs/measurements.md)
+# metres, along that soft mode; the limit of 2 edges took 873 to 1,103 Newton iterations to
+# 150 deg in five runs, against 1,153 to 1,384 without it (docs/measurements.md)
 if step_limit > 0.0:
     problem.step_limit = step_limit * stats["median_edge"]
 # -

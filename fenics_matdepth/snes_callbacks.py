@@ -145,8 +145,8 @@ class SNESCallbacks:
         shortens it. A trust region of fixed radius: where the Jacobian is nearly singular,
         the step turns towards the energy's descent direction instead of only getting
         shorter. Each replaced step counts in ``shifted_steps`` and costs one factorisation
-        per rung tried. Opt-in; the knee demo sets two median boundary edges: 876 to 1,103
-        Newton iterations to 150 deg in three runs against 1,153 to 1,384 without
+        per rung tried. Opt-in; the knee demo sets two median boundary edges: 873 to 1,103
+        Newton iterations to 150 deg in five runs against 1,153 to 1,384 without
         (docs/measurements.md).
 
         Raises:
