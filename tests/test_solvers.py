@@ -586,6 +586,21 @@ def petsc_garbage_entries(comm: MPI.Comm, capfd) -> int:
     return comm.bcast(count, root=0)
 
 
+def _double_well_block(comm, a: float):
+    """A soft unit block (no contact, no Dirichlet condition) in the double well
+    ``c (u_x^2 - a^2)^2 + k (u_y^2 + u_z^2)``: its minima are u = (+-a, 0, 0)."""
+    x, c = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    mesh = create_tetrahedral_mesh(comm, c, x)
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    psi, _ = neo_hookean(u, E, NU)
+    psi += 1000.0 * (u[0] ** 2 - a**2) ** 2 + 10.0 * (u[1] ** 2 + u[2] ** 2)
+    energy = psi * ufl.dx
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
+    return u, ContactProblem(residual, u, contact, energy=energy)
+
+
 def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     """Near a saddle of the energy (an unstable equilibrium) the Newton step climbs the energy;
     ContactProblem then steps with J + mu I (SHIFT_START) and reaches the minimum. Energy: a
@@ -596,17 +611,9 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     released: on 2 ranks nothing is left in PETSc's garbage (a PC left there per shifted step
     held its factorisation, and the knee's memory grew by GBs)."""
     comm = MPI.COMM_WORLD
-    x, c = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    mesh = create_tetrahedral_mesh(comm, c, x)
-    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
-    u = dolfinx.fem.Function(V)
-    a, well, pin = 0.1, 1000.0, 10.0
-    psi, _ = neo_hookean(u, E, NU)
-    psi += well * (u[0] ** 2 - a**2) ** 2 + pin * (u[1] ** 2 + u[2] ** 2)
-    energy = psi * ufl.dx
-    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
-    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
-    problem = ContactProblem(residual, u, contact, energy=energy)
+    a = 0.1
+    u, problem = _double_well_block(comm, a)
+    mesh = u.function_space.mesh
     start = np.zeros_like(u.x.array)
     start[0::3] = 0.1 * a
     u.x.array[:] = start
@@ -638,27 +645,12 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     assert petsc_garbage_entries(mesh.comm, capfd) == 0
 
 
-def _double_well_block(comm, a: float):
-    """A soft unit block (no contact, no Dirichlet condition) in the double well
-    ``c (u_x^2 - a^2)^2 + k (u_y^2 + u_z^2)``: its minima are u = (+-a, 0, 0)."""
-    x, c = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    mesh = create_tetrahedral_mesh(comm, c, x)
-    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
-    u = dolfinx.fem.Function(V)
-    psi, _ = neo_hookean(u, E, NU)
-    psi += 1000.0 * (u[0] ** 2 - a**2) ** 2 + 10.0 * (u[1] ** 2 + u[2] ** 2)
-    energy = psi * ufl.dx
-    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
-    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=1.0)
-    return u, ContactProblem(residual, u, contact, energy=energy)
-
-
 @pytest.mark.parametrize("limit", [None, 0.02])
 def test_a_step_limit_keeps_each_newton_step_within_it(limit):
     """With ``step_limit`` no Newton step moves a dof further than the limit, and the solve
-    reaches the same minimum. The double well from u_x = 3a: the Newton steps of the quartic
-    are a / 10 and longer (the first 0.092 for a = 0.1), so without the limit the check of the
-    step lengths fails (the case None asserts that it would)."""
+    reaches the same minimum. The double well from u_x = 3a: the first Newton step of the
+    quartic alone is 0.092 for a = 0.1, longer than the limit, so without the limit the check
+    of the step lengths fails (the case None asserts that it would)."""
     a = 0.1
     u, problem = _double_well_block(MPI.COMM_WORLD, a)
     problem.step_limit = limit
