@@ -159,13 +159,28 @@ def run_demo(command: list[str], env: dict, log_path: str | None, lines: list[st
                 print(line, end="", flush=True)  # the demo's own progress lines
 
 
-def main() -> None:
+def demo_settings(items: list[str]) -> dict[str, str]:
+    """The ``--env`` items as a dict; an item that is not KEY=VALUE is an error."""
+    settings = {}
+    for item in items:
+        key, equals, value = item.partition("=")
+        if not key or not equals:
+            raise SystemExit(f"--env takes KEY=VALUE items, got {item!r}")
+        settings[key] = value
+    return settings
+
+
+def arguments(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line (``argv``, default ``sys.argv[1:]``)."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--degrees", type=float, default=30.0)
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--predictor", default=None, help="MATDEPTH_KNEE_PREDICTOR")
     parser.add_argument("--processes", type=int, default=1)
-    parser.add_argument("--env", nargs="*", default=[], help="more KEY=VALUE for the demo")
+    # (extend: a second --env adds to the first instead of replacing it)
+    parser.add_argument(
+        "--env", nargs="+", action="extend", default=[], help="more KEY=VALUE for the demo"
+    )
     parser.add_argument("--output", default=None, help="the demo's output folder")
     parser.add_argument(
         "--log", default=None, help="write the demo's whole output (monitors included) here"
@@ -175,8 +190,11 @@ def main() -> None:
         default=None,
         help="no run: the figures of an earlier run from its --log file and --output folder",
     )
-    args = parser.parse_args()
+    return parser.parse_args(argv)
 
+
+def main() -> None:
+    args = arguments()
     tag = f"{args.degrees:g}deg_{args.steps}steps_{args.processes}p"
     output = Path(args.output or HERE / "output" / f"knee_{tag}").resolve()
     env = dict(os.environ)
@@ -188,9 +206,7 @@ def main() -> None:
     )
     if args.predictor is not None:
         env["MATDEPTH_KNEE_PREDICTOR"] = args.predictor
-    for item in args.env:
-        key, _, value = item.partition("=")
-        env[key] = value
+    env.update(demo_settings(args.env))
     command = [sys.executable, str(DEMO)]
     if args.processes > 1:
         command = ["mpirun", "-n", str(args.processes), *command]
