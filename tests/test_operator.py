@@ -601,6 +601,23 @@ def test_diagnostics_and_unchanged_state():
     assert op._evaluate(False, False) is not cached
 
 
+@pytest.mark.parametrize("integration", ["area", "collocation"])
+def test_pair_energies_name_a_cell_and_sum_to_the_energy(integration):
+    comm = MPI.COMM_WORLD
+    mesh, V, _, op = _setup(comm, integration)
+    verts, energy = op.pair_energies()
+    assert verts.shape == (energy.size, 7 if integration == "area" else 5)
+    # the fused pass of energy() (plain penalty, area) and the per-pair arrays agree
+    assert comm.allreduce(float(np.sum(energy))) == pytest.approx(op.energy(), rel=1e-12)
+    assert comm.allreduce(int(np.count_nonzero(energy > 0.0))) > 0
+    # each pair's last four vertices, in the global numbering of u, are a tetrahedron's
+    imap = V.dofmap.index_map
+    n_cells = mesh.topology.index_map(3).size_local
+    cells = imap.local_to_global(V.dofmap.list[:n_cells].ravel()).reshape(-1, 4)
+    known = {tuple(c) for part in comm.allgather(np.sort(cells, axis=1).tolist()) for c in part}
+    assert all(tuple(t) in known for t in np.sort(verts[:, -4:], axis=1).tolist())
+
+
 def test_propose_penalty():
     """eps = factor * modulus / h, h the median boundary edge: for a Kuhn-split box of n = 3
     cells per side every boundary triangle has two axis edges (1/3) and one diagonal."""

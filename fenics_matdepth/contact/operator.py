@@ -376,6 +376,11 @@ class ContactOperator(FrictionMixin):
         r = self._evaluate(False, True)
         return r["verts"], r["hess"]
 
+    def pair_energies(self) -> tuple[np.ndarray, np.ndarray]:
+        """This rank's evaluated pairs now: their global vertices (n, 7) and energies (F L)."""
+        r = self._evaluate(False, False)
+        return self.surface.global_vertex[r["verts"]], r["energy"]
+
     def _pattern_in_held_numbering(self) -> np.ndarray:
         if self._held_keys is None:
             keys = self._pattern_keys if self._pattern_keys is not None else np.empty(0, INDEX)
