@@ -10,6 +10,13 @@ shortening by the collision detection or the line search) and prints one ``DIR``
   of ``|y|^2`` (a few: the step is a local mode of a few vertices);
 - the change of the bulk energy and of the contact energy at ``x - s y`` for ``s`` in
   ``STEP_FRACTIONS`` (``nan``: a trial state the line search would reject, det F <= 0);
+- ``PAIRS``: the same change of the total energy next to Newton's quadratic model of it,
+  ``-s g + s^2 g / 2`` with ``g = F . y`` (``J y = F``, so ``y^T J y = g``), and the contact's
+  change split by pair (triangle, tetrahedron): the pairs in contact at ``x`` and at the trial
+  state, those entering (in contact only at the trial state: their Hessian is not in ``J``)
+  and those leaving, with how many enter; then, for ``s`` in ``JACOBIAN_FRACTIONS``, how far
+  the step shrinks the cells: the smallest ratio of det F at the trial state to det F at
+  ``x`` and how many cells fall below one half and 0.8 of it or swell past 1.5;
 - the five vertices with the longest step, with their body and reference position (mm).
 
 The state is restored before the problem's own callback runs, so the solve is the demo's. One
@@ -35,6 +42,8 @@ from diagnose_knee import run_knee_with
 
 #: the fractions s of the full Newton step at which the energies are evaluated
 STEP_FRACTIONS = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+#: and those at which the cells' det F is compared with det F at the iterate
+JACOBIAN_FRACTIONS = (0.5, 1.0)
 
 
 class DirectionDiagnosis:
@@ -55,19 +64,30 @@ class DirectionDiagnosis:
         self.body[cells.ravel()] = np.repeat(cell_body[:n_cells], cells.shape[1])
         self.names = body_names
         self.X = V.tabulate_dof_coordinates()
+        self.cells = np.asarray(V.dofmap.list)[:n_cells]
         self.ksp = PETSc.KSP().create(V.mesh.comm)
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
         pc.setType("lu")
         pc.setFactorSolverType("mumps")
 
-    def energies(self, x: PETSc.Vec) -> tuple[float, float]:
-        """The bulk and contact energies at ``x`` (NaN where an element inverts)."""
+    def volumes(self, displacement: np.ndarray) -> np.ndarray:
+        """Six times each owned cell's signed volume at ``displacement`` ((n, 3) by vertex)."""
+        p = self.X[self.cells] + displacement[self.cells]
+        e = p[:, 1:] - p[:, :1]
+        return np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))
+
+    def energies(self, x: PETSc.Vec) -> tuple[float, float, dict | None]:
+        """The bulk and contact energies at ``x`` (NaN where an element inverts) and the
+        contact pairs' energies by pair (None there)."""
         self.assembler.set_state(x)
         if not self.assembler.min_det_F() > 0.0:
-            return np.nan, np.nan
+            return np.nan, np.nan, None
         bulk = dolfinx.fem.assemble_scalar(self.assembler.energy_form)
-        return float(bulk), float(self.problem.contact.energy())
+        verts, energy = self.problem.contact.pair_energies()
+        rows = np.ascontiguousarray(verts, dtype=np.int64)
+        pairs = {bytes(r): float(e) for r, e in zip(rows, energy, strict=True) if e > 0.0}
+        return float(bulk), float(self.problem.contact.energy()), pairs
 
     def __call__(self, snes: PETSc.SNES, iteration: int) -> None:
         try:
@@ -90,13 +110,26 @@ class DirectionDiagnosis:
             self.ksp.solve(F, y)
             step = np.linalg.norm(y.getArray(readonly=True).reshape(-1, 3), axis=1)
             shares = np.sort(step**2)[::-1].cumsum() / max(float(np.sum(step**2)), 1e-300)
-            bulk0, contact0 = self.energies(x)
-            profile = []
+            bulk0, contact0, pairs0 = self.energies(x)
+            slope = F.dot(y)
+            profile, split = [], []
             for s in STEP_FRACTIONS:
                 x.copy(trial)
                 trial.axpy(-s, y)
-                bulk, contact = self.energies(trial)
+                bulk, contact, pairs = self.energies(trial)
                 profile.append(f"{s:g}: {bulk - bulk0:+.3g}/{contact - contact0:+.3g}")
+                model = -s * slope + 0.5 * s * s * slope
+                if pairs is None:
+                    split.append(f"{s:g}: model {model:+.3g} inadmissible")
+                    continue
+                kept = sum(e - pairs0[k] for k, e in pairs.items() if k in pairs0)
+                entering = [e for k, e in pairs.items() if k not in pairs0]
+                leaving = sum(e for k, e in pairs0.items() if k not in pairs)
+                split.append(
+                    f"{s:g}: model {model:+.3g} actual {bulk + contact - bulk0 - contact0:+.3g} ="
+                    f" bulk {bulk - bulk0:+.3g} kept {kept:+.3g} entering {sum(entering):+.3g}"
+                    f" ({len(entering)}) leaving {-leaving:+.3g}"
+                )
             longest = ", ".join(
                 f"{step[i]:.2f} mm {self.names[self.body[i]]} at {np.round(self.X[i], 0).tolist()}"
                 for i in np.argsort(step)[::-1][:5]
@@ -106,6 +139,20 @@ class DirectionDiagnosis:
                 f"{-F.dot(y):.3e} |y|max {step.max():.3g} mm median {np.median(step):.3g} mm "
                 f"n90 {int(np.searchsorted(shares, 0.9)) + 1} | d(bulk)/d(contact) energy "
                 f"{'; '.join(profile)} | longest {longest}",
+                flush=True,
+            )
+            # how far the step shrinks or swells the cells: det F at the trial over det F at x
+            u0 = x.getArray(readonly=True).reshape(-1, 3)
+            volume0 = self.volumes(u0)
+            shrink = []
+            for s in JACOBIAN_FRACTIONS:
+                ratio = self.volumes(u0 - s * y.getArray(readonly=True).reshape(-1, 3)) / volume0
+                shrink.append(
+                    f"{s:g}: min {ratio.min():.3g}, {int(np.sum(ratio < 0.5))} below 0.5, "
+                    f"{int(np.sum(ratio < 0.8))} below 0.8, {int(np.sum(ratio > 1.5))} above 1.5"
+                )
+            print(
+                f"PAIRS it {iteration} | {'; '.join(split)} | det F ratio {'; '.join(shrink)}",
                 flush=True,
             )
         finally:
