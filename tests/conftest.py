@@ -9,9 +9,11 @@ pytest puts this folder on ``sys.path``), so that module-level set-up code can c
 from __future__ import annotations
 
 import gc
+import importlib.util
 import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from mpi4py import MPI
 
@@ -73,6 +75,17 @@ def pytest_collection_modifyitems(config, items):
 
 
 # -- materials -------------------------------------------------------------------------------
+
+
+def benchmark_module(name: str):
+    """``benchmarks/<name>.py`` loaded as a module (registered in ``sys.modules``, where its
+    dataclasses look their module up)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def neo_hookean(

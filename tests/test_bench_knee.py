@@ -2,25 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import benchmark_module
 
 
 @pytest.fixture(scope="module")
 def bench():
-    """``benchmarks/bench_knee.py`` as a module (standard library only)."""
-    spec = importlib.util.spec_from_file_location(
-        "bench_knee", ROOT / "benchmarks" / "bench_knee.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # (its dataclasses look their module up there)
-    spec.loader.exec_module(module)
-    return module
+    """``benchmarks/bench_knee.py`` (standard library only)."""
+    return benchmark_module("bench_knee")
 
 
 def test_repeated_env_flags_add_up(bench):

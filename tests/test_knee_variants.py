@@ -4,31 +4,21 @@ mesh)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 from mpi4py import MPI
 
 import dolfinx
 import numpy as np
 import pytest
 import ufl
-from conftest import aij_matrix
+from conftest import aij_matrix, benchmark_module
 
 import fenics_matdepth as fm
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def variants():
     """``benchmarks/knee_variants.py`` as a module."""
-    spec = importlib.util.spec_from_file_location(
-        "knee_variants", ROOT / "benchmarks" / "knee_variants.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_module("knee_variants")
 
 
 def _cube(deformed: bool):
