@@ -221,7 +221,12 @@ def test_max_energy_gain_retries_only_the_steps_that_gain():
         max_energy_gain=bound * cubes.integrator.kinetic_energy(),
     )  # fmt: skip
     assert max(r.active_pairs for r in history) > 0
-    assert drift <= 1e-12, drift
+    # momentum to round-off and the Newton tolerance (a step's residual is converged to 1e-10
+    # of its first, not to zero): 1e-15 of a body's momentum on most paths, 4.95e-12 on one
+    # 2-rank path (the retries make the path, which on 2 ranks differs between runs), where a
+    # bound of 1e-12 failed; a force that moved momentum would leave an error of the order of
+    # the momentum the blocks exchange
+    assert drift <= 1e-10, drift
     above_min = np.array([r.dt > dt / 2**10 for r in history[1:]])
     change = np.diff(energy)
     assert change[above_min].max() <= bound, change.max()
