@@ -19,7 +19,8 @@ shortening by the collision detection or the line search) and prints one ``DIR``
   ``x`` and how many cells fall below one half and 0.8 of it or swell past 1.5;
 - the five vertices with the longest step, with their body and reference position (mm).
 
-The state is restored before the problem's own callback runs, so the solve is the demo's. One
+At the end a ``SUMMARY`` sums the ``PAIRS`` lines (:func:`summary`). The state is restored
+before the problem's own callback runs, so the solve is the demo's. One
 line costs a factorisation and a dozen energy evaluations; ``DIAGNOSE_ITERATIONS`` (default
 60) bounds how many iterations are diagnosed. Settings as the demo's (``MATDEPTH_KNEE_*``);
 to look at one late step, resume from a checkpoint (``MATDEPTH_KNEE_RESUME=1``,
@@ -42,7 +43,8 @@ from diagnose_knee import run_knee_with
 
 #: the fractions s of the full Newton step at which the energies are evaluated
 STEP_FRACTIONS = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
-#: and those at which the cells' det F is compared with det F at the iterate
+#: and those at which the cells' det F is compared with det F at the iterate (1.0 among them:
+#: the summary reads the full step's)
 JACOBIAN_FRACTIONS = (0.5, 1.0)
 
 
@@ -56,6 +58,9 @@ class DirectionDiagnosis:
         self.assembler = problem.assembler
         self.limit = limit
         self.count = 0
+        #: per direction after a solve's first iteration: ({s: (model, actual, bulk, kept,
+        #: entering - leaving)}, the smallest det F ratio at the full step)
+        self.records: list[tuple[dict, float]] = []
         V = problem.u.function_space
         n_cells = V.mesh.topology.index_map(3).size_local
         blocks = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
@@ -113,6 +118,7 @@ class DirectionDiagnosis:
             bulk0, contact0, pairs0 = self.energies(x)
             slope = F.dot(y)
             profile, split = [], []
+            record = {}  # s: (model, actual, bulk, pairs kept, pairs entering - leaving)
             for s in STEP_FRACTIONS:
                 x.copy(trial)
                 trial.axpy(-s, y)
@@ -125,6 +131,8 @@ class DirectionDiagnosis:
                 kept = sum(e - pairs0[k] for k, e in pairs.items() if k in pairs0)
                 entering = [e for k, e in pairs.items() if k not in pairs0]
                 leaving = sum(e for k, e in pairs0.items() if k not in pairs)
+                actual = bulk + contact - bulk0 - contact0
+                record[s] = (model, actual, bulk - bulk0, kept, sum(entering) - leaving)
                 split.append(
                     f"{s:g}: model {model:+.3g} actual {bulk + contact - bulk0 - contact0:+.3g} ="
                     f" bulk {bulk - bulk0:+.3g} kept {kept:+.3g} entering {sum(entering):+.3g}"
@@ -144,9 +152,10 @@ class DirectionDiagnosis:
             # how far the step shrinks or swells the cells: det F at the trial over det F at x
             u0 = x.getArray(readonly=True).reshape(-1, 3)
             volume0 = self.volumes(u0)
-            shrink = []
+            shrink, smallest = [], {}
             for s in JACOBIAN_FRACTIONS:
                 ratio = self.volumes(u0 - s * y.getArray(readonly=True).reshape(-1, 3)) / volume0
+                smallest[s] = float(ratio.min())
                 shrink.append(
                     f"{s:g}: min {ratio.min():.3g}, {int(np.sum(ratio < 0.5))} below 0.5, "
                     f"{int(np.sum(ratio < 0.8))} below 0.8, {int(np.sum(ratio > 1.5))} above 1.5"
@@ -155,6 +164,8 @@ class DirectionDiagnosis:
                 f"PAIRS it {iteration} | {'; '.join(split)} | det F ratio {'; '.join(shrink)}",
                 flush=True,
             )
+            if iteration > 0:  # (a first iteration moves the Dirichlet dofs: energy rises)
+                self.records.append((record, smallest[1.0]))
         finally:
             self.assembler.set_state(x)  # the solve goes on from x
             for vector in (x, F, y, trial):
@@ -162,14 +173,62 @@ class DirectionDiagnosis:
             A.destroy()
 
 
+def summary(records: list[tuple[dict, float]]) -> list[str]:
+    """The ``PAIRS`` lines summed: at each fraction s, how many directions change the energy
+    as the quadratic model says (within 25 %) and how many raise it; of the full steps that
+    raise it, which term rises most (bulk, pairs kept, pairs entering less those leaving) and
+    the smallest det F ratio of those where the bulk does; that ratio over the full steps the
+    model predicts."""
+    lines = [f"SUMMARY of {len(records)} directions after a solve's first iteration"]
+    for s in STEP_FRACTIONS:
+        rows = [r[s] for r, _ in records if s in r]
+        within = sum(abs(actual - model) <= 0.25 * abs(model) for model, actual, *_ in rows)
+        raised = sum(actual > 0.0 for _, actual, *_ in rows)
+        lines.append(
+            f"  s = {s:g}: within 25 % of the model {within} of {len(rows)} (admissible), "
+            f"energy raised {raised}"
+        )
+    names = ("bulk", "pairs kept", "pairs entering")
+    largest = {name: 0 for name in names}
+    bulk_ratios, predicted_ratios = [], []
+    for record, ratio in records:
+        if 1.0 not in record:
+            continue
+        model, actual, *terms = record[1.0]
+        if abs(actual - model) <= 0.25 * abs(model):
+            predicted_ratios.append(ratio)
+        if actual > 0.0:
+            name = names[int(np.argmax(terms))]
+            largest[name] += 1
+            if name == "bulk":
+                bulk_ratios.append(ratio)
+    lines.append(
+        "  full steps raising the energy, by the largest term: "
+        + ", ".join(f"{name} {count}" for name, count in largest.items())
+    )
+    lines.append(f"  their smallest det F ratios where the bulk rises most: {sorted(bulk_ratios)}")
+    if predicted_ratios:
+        lines.append(
+            f"  the full steps the model predicts: smallest det F ratio "
+            f"{min(predicted_ratios):.3g}, median {float(np.median(predicted_ratios)):.3g}"
+        )
+    return lines
+
+
 def main() -> None:
     limit = int(os.environ.get("DIAGNOSE_ITERATIONS", 60))
+    hooks: list[DirectionDiagnosis] = []
 
     def install(problem, demo: dict) -> None:
         hook = DirectionDiagnosis(problem, demo["cell_body"], demo["leg"].BODIES, limit)
         problem.snes.setUpdate(hook)
+        hooks.append(hook)
 
-    run_knee_with(install)
+    try:
+        run_knee_with(install)
+    finally:
+        for line in summary([r for hook in hooks for r in hook.records]):
+            print(line, flush=True)
 
 
 if __name__ == "__main__":
