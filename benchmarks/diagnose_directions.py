@@ -20,8 +20,10 @@ shortening by the collision detection or the line search) and prints one ``DIR``
 - the five vertices with the longest step, with their body and reference position (mm).
 
 At the end a ``SUMMARY`` sums the ``PAIRS`` lines (:func:`summary`). The state is restored
-before the problem's own callback runs, so the solve is the demo's. One
-line costs a factorisation and a dozen energy evaluations; ``DIAGNOSE_ITERATIONS`` (default
+before the problem's own callback runs, but the contact operator has been updated at the
+trial states in between (its pair search among them), and a late step's path can part from the
+demo's: from the 144 deg checkpoint the diagnosed run cut its first step three times where the
+demo converged it. One line costs a factorisation and a dozen energy evaluations; ``DIAGNOSE_ITERATIONS`` (default
 60) bounds how many iterations are diagnosed. Settings as the demo's (``MATDEPTH_KNEE_*``);
 to look at one late step, resume from a checkpoint (``MATDEPTH_KNEE_RESUME=1``,
 ``MATDEPTH_DEMO_OUTPUT`` the folder holding it) and stop after it
