@@ -23,10 +23,10 @@ At the end a ``SUMMARY`` sums the ``PAIRS`` lines (:func:`summary`). The state i
 before the problem's own callback runs, but the contact operator has been updated at the
 trial states in between (its pair search among them), and a late step's path can part from the
 demo's: from the 144 deg checkpoint the diagnosed run cut its first step three times where the
-demo converged it. One line costs a factorisation and a dozen energy evaluations; ``DIAGNOSE_ITERATIONS`` (default
-60) bounds how many iterations are diagnosed. Settings as the demo's (``MATDEPTH_KNEE_*``);
-to look at one late step, resume from a checkpoint (``MATDEPTH_KNEE_RESUME=1``,
-``MATDEPTH_DEMO_OUTPUT`` the folder holding it) and stop after it
+demo converged it. One line costs a factorisation and a dozen energy evaluations;
+``DIAGNOSE_ITERATIONS`` (default 60) bounds how many iterations are diagnosed. Settings as the
+demo's (``MATDEPTH_KNEE_*``); to look at one late step, resume from a checkpoint
+(``MATDEPTH_KNEE_RESUME=1``, ``MATDEPTH_DEMO_OUTPUT`` the folder holding it) and stop after it
 (``MATDEPTH_KNEE_STOP_DEGREES``).
 
 Run: ``MATDEPTH_KNEE_DEGREES=6 MATDEPTH_KNEE_STEPS=2 scripts/fenicsx python3
@@ -208,7 +208,8 @@ def summary(records: list[tuple[dict, float]]) -> list[str]:
         "  full steps raising the energy, by the largest term: "
         + ", ".join(f"{name} {count}" for name, count in largest.items())
     )
-    lines.append(f"  their smallest det F ratios where the bulk rises most: {sorted(bulk_ratios)}")
+    ratios = [round(r, 3) for r in sorted(bulk_ratios)]
+    lines.append(f"  their smallest det F ratios where the bulk rises most: {ratios}")
     if predicted_ratios:
         lines.append(
             f"  the full steps the model predicts: smallest det F ratio "
