@@ -71,18 +71,11 @@ class DirectionDiagnosis:
         self.body[cells.ravel()] = np.repeat(cell_body[:n_cells], cells.shape[1])
         self.names = body_names
         self.X = V.tabulate_dof_coordinates()
-        self.cells = np.asarray(V.dofmap.list)[:n_cells]
         self.ksp = PETSc.KSP().create(V.mesh.comm)
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
         pc.setType("lu")
         pc.setFactorSolverType("mumps")
-
-    def volumes(self, displacement: np.ndarray) -> np.ndarray:
-        """Six times each owned cell's signed volume at ``displacement`` ((n, 3) by vertex)."""
-        p = self.X[self.cells] + displacement[self.cells]
-        e = p[:, 1:] - p[:, :1]
-        return np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))
 
     def energies(self, x: PETSc.Vec) -> tuple[float, float, dict | None]:
         """The bulk and contact energies at ``x`` (NaN where an element inverts) and the
@@ -152,11 +145,13 @@ class DirectionDiagnosis:
                 flush=True,
             )
             # how far the step shrinks or swells the cells: det F at the trial over det F at x
-            u0 = x.getArray(readonly=True).reshape(-1, 3)
-            volume0 = self.volumes(u0)
+            # (serial: x holds every vertex)
+            cells = self.assembler.cells
+            u0, step_array = x.getArray(readonly=True), y.getArray(readonly=True)
+            det0 = cells.local_values(u0)
             shrink, smallest = [], {}
             for s in JACOBIAN_FRACTIONS:
-                ratio = self.volumes(u0 - s * y.getArray(readonly=True).reshape(-1, 3)) / volume0
+                ratio = cells.local_values(u0 - s * step_array) / det0
                 smallest[s] = float(ratio.min())
                 shrink.append(
                     f"{s:g}: min {ratio.min():.3g}, {int(np.sum(ratio < 0.5))} below 0.5, "

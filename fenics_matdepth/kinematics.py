@@ -179,13 +179,17 @@ class CellDeterminants:
         self._X = p1_dof_coordinates(V)
         self._vol6 = _signed_volumes6(self._X[self._cells])
 
+    def local_values(self, u_local: np.ndarray) -> np.ndarray:
+        """det F of each of this rank's owned cells for the local (owned + ghost) displacement
+        values."""
+        x = self._X + np.asarray(u_local).reshape(-1, 3)
+        return _signed_volumes6(x[self._cells]) / self._vol6
+
     def local_min(self, u_local: np.ndarray) -> float:
         """This rank's smallest det F for the local (owned + ghost) displacement values."""
         if self._cells.shape[0] == 0:
             return np.inf
-        x = self._X + np.asarray(u_local).reshape(-1, 3)
-        det = _signed_volumes6(x[self._cells]) / self._vol6
-        value = float(det.min())
+        value = float(self.local_values(u_local).min())
         return value if np.isfinite(value) else -np.inf
 
     def min(self, u: dolfinx.fem.Function | np.ndarray) -> float:

@@ -104,3 +104,19 @@ def test_rigid_rotation_needs_a_vector_space():
     Q = dolfinx.fem.functionspace(mesh, ("Lagrange", 1))
     with pytest.raises(ValueError, match="value size 3"):
         fm.RigidRotation(Q, (0, 0, 0), (0, 0, 1))
+
+
+def test_cell_determinants_of_a_uniform_stretch():
+    """u = (s - 1) x stretches every cell by s in each direction: det F = s^3 in each cell, and
+    the smallest over the cells is that value."""
+    mesh = dolfinx.mesh.create_unit_cube(
+        MPI.COMM_WORLD, 2, 2, 2, cell_type=dolfinx.mesh.CellType.tetrahedron
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    u.interpolate(lambda x: 0.5 * x)
+    cells = fm.kinematics.CellDeterminants(V)
+    values = cells.local_values(u.x.array)
+    assert values.size == mesh.topology.index_map(3).size_local
+    assert np.allclose(values, 1.5**3, rtol=1e-12)
+    assert cells.min(u) == pytest.approx(1.5**3, rel=1e-12)
