@@ -125,13 +125,14 @@ class DirectionDiagnosis:
                     continue
                 kept = sum(e - pairs0[k] for k, e in pairs.items() if k in pairs0)
                 entering = [e for k, e in pairs.items() if k not in pairs0]
+                entered = sum(entering)
                 leaving = sum(e for k, e in pairs0.items() if k not in pairs)
                 actual = bulk + contact - bulk0 - contact0
-                record[s] = (model, actual, bulk - bulk0, kept, sum(entering) - leaving)
+                record[s] = (model, actual, bulk - bulk0, kept, entered - leaving)
                 split.append(
-                    f"{s:g}: model {model:+.3g} actual {bulk + contact - bulk0 - contact0:+.3g} ="
-                    f" bulk {bulk - bulk0:+.3g} kept {kept:+.3g} entering {sum(entering):+.3g}"
-                    f" ({len(entering)}) leaving {-leaving:+.3g}"
+                    f"{s:g}: model {model:+.3g} actual {actual:+.3g} = bulk {bulk - bulk0:+.3g}"
+                    f" kept {kept:+.3g} entering {entered:+.3g} ({len(entering)})"
+                    f" leaving {-leaving:+.3g}"
                 )
             longest = ", ".join(
                 f"{step[i]:.2f} mm {self.names[self.body[i]]} at {np.round(self.X[i], 0).tolist()}"
