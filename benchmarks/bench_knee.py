@@ -223,7 +223,7 @@ def main() -> None:
         print(f"\n(no {output / 'knee.json'}: the demo did not finish; figures from its output)")
         nan = float("nan")
         summary = dict(
-            max_newton_iterations=int(env.get("MATDEPTH_KNEE_MAX_IT", 100)),
+            max_newton_iterations=int(env.get("MATDEPTH_KNEE_MAX_IT", 200)),  # the demo's default
             reached_degrees=nan, completed=False, steps=[], seconds=nan, solve_seconds=nan,
             time_split=dict(force_stiffness=nan, contact_update=nan, linear_solve=nan),
         )  # fmt: skip

@@ -14,6 +14,13 @@
   ``ESCAPE_TRAVEL`` median boundary edges at the vertex that moves most, to the side of lower
   energy, and solved again at the same load; the step keeps the new state if that solve
   converges (one ``ESCAPE`` line each).
+- ``--relax``: nonlinear elimination of a concentrated residual. Before each Newton step after
+  a solve's first, where at most ``RELAX_VERTICES`` vertices hold ``RELAX_SHARE`` of
+  ``|F|^2``, the equilibrium of those vertices and their neighbours (the cells round them) is
+  solved with every other vertex held, by up to ``RELAX_ITERATIONS`` Newton iterations on
+  that patch (its block of the Jacobian, dense, and a backtracking search on the energy); the
+  global step goes on from the relaxed state (:class:`LocalRelaxation`, one ``RELAX`` line per
+  use). Each local iteration assembles the whole residual, Jacobian and energy.
 
 Serial only. The demo's output goes to stdout with ``bench_knee.py``'s monitors on; its
 figures come from ``bench_knee.py --from-log``::
@@ -59,6 +66,16 @@ SLOW_RATE = 0.5
 ESCAPE_TRAVEL = 0.25
 #: ``--escape-saddles``: eigenpairs computed nearest the shift below the lowest eigenvalue
 ESCAPE_PAIRS = 2
+#: ``--relax``: the residual counts as concentrated where at most RELAX_VERTICES vertices hold
+#: RELAX_SHARE of its square
+RELAX_SHARE = 0.8
+RELAX_VERTICES = 12
+#: ``--relax``: Newton iterations of one patch's solve (it stops sooner once the patch's
+#: residual fell below RELAX_RTOL of its start)
+RELAX_ITERATIONS = 6
+RELAX_RTOL = 0.05
+#: ``--relax``: no relaxation once the residual norm is below this (force)
+RELAX_MIN_NORM = 0.1
 
 
 def element_matrices(energy: ufl.Form, u: dolfinx.fem.Function) -> tuple:
@@ -202,6 +219,143 @@ class DefiniteHessians:
         snes.setUpdate(update)
 
 
+class LocalRelaxation:
+    """``--relax`` (see the module docstring): the equilibrium of the vertices holding most of
+    the residual, and of their neighbours, with every other vertex held. Serial.
+
+    Args:
+        residual: ``residual(x, b)`` writes ``F(x)`` into ``b``.
+        jacobian: ``jacobian(x)``, the Jacobian at ``x`` (a PETSc matrix; rows and columns of
+            held dofs are not read).
+        energy: ``energy(x)``, the energy at ``x`` (``inf`` where inadmissible).
+        cells: each cell's vertices, ``(n_cells, 4)``; dof ``3 v + i`` is vertex v's i-th.
+        fixed: which dofs are held (Dirichlet), a boolean array.
+    """
+
+    def __init__(self, residual, jacobian, energy, cells: np.ndarray, fixed: np.ndarray,
+                 share: float = RELAX_SHARE, vertices: int = RELAX_VERTICES,
+                 iterations: int = RELAX_ITERATIONS):  # fmt: skip
+        self.residual, self.jacobian, self.energy = residual, jacobian, energy
+        self.cells, self.fixed = cells, fixed
+        self.share, self.vertices, self.iterations = share, vertices, iterations
+        self.uses = self.local_iterations = 0
+
+    def patch(self, F: PETSc.Vec) -> np.ndarray | None:
+        """The free dofs of the patch round the vertices holding ``share`` of ``|F|^2``, or
+        None where more than ``vertices`` vertices are needed for it."""
+        r2 = (F.getArray(readonly=True).reshape(-1, 3) ** 2).sum(axis=1)
+        order = np.argsort(r2)[::-1]
+        needed = int(np.searchsorted(np.cumsum(r2[order]), self.share * r2.sum())) + 1
+        if needed > self.vertices:
+            return None
+        around = np.unique(self.cells[np.isin(self.cells, order[:needed]).any(axis=1)])
+        dofs = (3 * around[:, None] + np.arange(3)).ravel()
+        return dofs[~self.fixed[dofs]].astype(PETSc.IntType)
+
+    def relax(self, x: PETSc.Vec, F: PETSc.Vec) -> tuple | None:
+        """Relax ``x`` in place from its residual ``F`` (not updated); returns (the patch's
+        dofs, iterations, the patch's residual norm before and after), or None where the
+        residual is not concentrated."""
+        dofs = self.patch(F)
+        if dofs is None or dofs.size == 0:
+            return None
+        rows = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
+        b, trial = F.duplicate(), x.duplicate()
+        energy = self.energy(x)
+        start = np.linalg.norm(F.getValues(dofs))
+        iterations = 0
+        try:
+            for iterations in range(1, self.iterations + 1):
+                self.residual(x, b)
+                f = b.getValues(dofs)
+                if np.linalg.norm(f) < RELAX_RTOL * start:
+                    iterations -= 1
+                    break
+                block = self.jacobian(x).createSubMatrix(rows, rows)
+                K = block.convert("dense").getDenseArray().copy()
+                block.destroy()
+                step = np.linalg.lstsq(K, f, rcond=None)[0]
+                slope = -f @ step
+                if not slope < 0.0:  # the patch's Newton step climbs: a gradient step instead
+                    step = f / np.abs(np.diag(K)).max()
+                    slope = -f @ step
+                moved = False
+                for length in 0.5 ** np.arange(8):
+                    x.copy(trial)
+                    trial.setValues(dofs, x.getValues(dofs) - length * step)
+                    trial.assemble()
+                    value = self.energy(trial)
+                    if value <= energy + 1e-4 * length * slope:
+                        moved = True
+                        break
+                if not moved:
+                    break
+                trial.copy(x)
+                energy = value
+            self.residual(x, b)
+            norm = np.linalg.norm(b.getValues(dofs))
+        finally:
+            for obj in (rows, b, trial):
+                obj.destroy()
+        self.uses += 1
+        self.local_iterations += iterations
+        return dofs, iterations, start, norm
+
+    def install(self, problem) -> None:
+        """Relax before each Newton step of ``problem`` (a ContactProblem) after a solve's
+        first, chained before the problem's own update callback; the SNES's residual and its
+        norm are then those of the relaxed iterate."""
+        snes = problem.snes
+        then, args, kwargs = snes.getUpdate()
+
+        def update(s: PETSc.SNES, iteration: int) -> None:
+            F = s.getFunction()[0]
+            norm = s.getFunctionNorm()
+            if iteration > 0 and np.isfinite(norm) and norm > RELAX_MIN_NORM:
+                x = s.getSolution()
+                done = self.relax(x, F)
+                if done is not None:
+                    # the problem's residual and energy kept for the last trial state are stale
+                    problem._trial_valid, problem._energy_value = False, np.nan
+                    s.computeFunction(x, F)
+                    s.setFunctionNorm(F.norm())
+                    dofs, iterations, before, after = done
+                    print(
+                        f"RELAX {dofs.size} dofs, {iterations} it, patch |F| {before:.3g} -> "
+                        f"{after:.3g}, |F| {norm:.3g} -> {s.getFunctionNorm():.3g}",
+                        flush=True,
+                    )
+            then(s, iteration, *args, **kwargs)
+
+        snes.setUpdate(update)
+
+
+def relaxation_of(problem, cells: np.ndarray) -> LocalRelaxation:
+    """``--relax``'s :class:`LocalRelaxation` on a ContactProblem's assembler."""
+    assembler = problem.assembler
+    fixed = np.zeros(3 * (cells.max() + 1), dtype=bool)
+    for bc in assembler.bcs:
+        fixed[bc.dof_indices()[0]] = True
+
+    def residual(x, b):
+        assembler.set_state(x)
+        assembler.residual(x, b)
+
+    def jacobian(x):
+        assembler.set_state(x)
+        assembler.rebuild_matrix_if_needed(
+            lambda A: problem.snes.setJacobian(problem._jacobian, A, A)
+        )
+        assembler.jacobian(assembler.matrix)
+        return assembler.matrix
+
+    def energy(x):
+        assembler.set_state(x)
+        return assembler.total_energy() if assembler.min_det_F() > 0.0 else np.inf
+
+    return LocalRelaxation(residual, jacobian, energy, cells, fixed)
+
+
 def lowest_eigenvalue_bracket(A: PETSc.Mat) -> float:
     """A shift ``sigma`` just below the lowest eigenvalue of the symmetric ``A``, which has a
     negative one: no eigenvalue below ``sigma``, one or more below ``0.9 sigma`` (the inertia
@@ -319,6 +473,7 @@ def main() -> None:
     parser.add_argument("--hessian", choices=HESSIANS, default="exact")
     parser.add_argument("--snes", choices=("newtonls", "newtontr"), default="newtonls")
     parser.add_argument("--escape-saddles", action="store_true")
+    parser.add_argument("--relax", action="store_true")
     parser.add_argument("--degrees", type=float, default=150.0)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--output", required=True, help="the demo's output folder")
@@ -332,6 +487,7 @@ def main() -> None:
 
     installed: list[DefiniteHessians] = []
     escapes: list[SaddleEscape] = []
+    relaxations: list[LocalRelaxation] = []
 
     def install(problem, demo: dict) -> None:
         if args.snes == "newtontr":
@@ -350,6 +506,11 @@ def main() -> None:
             escape = SaddleEscape(solver, problem, ESCAPE_TRAVEL * demo["h_boundary"])
             solver.solve = escape.solve
             escapes.append(escape)
+        if args.relax:
+            cells = np.asarray(problem.u.function_space.dofmap.list).reshape(-1, 4)
+            relaxation = relaxation_of(problem, cells)
+            relaxation.install(problem)
+            relaxations.append(relaxation)
 
     try:
         run_knee_with(install)
@@ -365,6 +526,11 @@ def main() -> None:
             print(
                 f"saddles: {escape.saddles} converged steps, {escape.escaped} left to a "
                 f"converged state in {escape.iterations} Newton iterations"
+            )
+        for relaxation in relaxations:
+            print(
+                f"local relaxation: {relaxation.uses} patches relaxed in "
+                f"{relaxation.local_iterations} local Newton iterations"
             )
 
 

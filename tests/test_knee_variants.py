@@ -1,12 +1,13 @@
 """``benchmarks/knee_variants.py``'s element Hessians made definite, checked against DOLFINx's
 own assembly of the Hessian on a compressed, sheared neo-Hookean cube (each rank its own
-mesh)."""
+mesh); the saddle escape's eigenpair; the local relaxation on a block with pushed vertices."""
 
 from __future__ import annotations
 
 from mpi4py import MPI
 
 import dolfinx
+import dolfinx.fem.petsc
 import numpy as np
 import pytest
 import ufl
@@ -121,3 +122,109 @@ def test_unstable_mode_is_the_lowest_eigenpair(variants):
     assert abs(w @ Q[:, 5]) / np.linalg.norm(w) == pytest.approx(1.0, abs=1e-8)
     A.destroy()
     vector.destroy()
+
+
+def _relaxation(variants, u, energy, bcs):
+    """``--relax``'s LocalRelaxation on a plain DOLFINx problem: the residual, Jacobian and
+    energy of ``energy`` at the state ``x`` (no boundary conditions: their dofs are held)."""
+    V = u.function_space
+    residual_form = dolfinx.fem.form(ufl.derivative(energy, u))
+    jacobian_form = dolfinx.fem.form(ufl.derivative(ufl.derivative(energy, u), u))
+    energy_form = dolfinx.fem.form(energy)
+
+    def set_state(x):
+        u.x.array[:] = x.getArray(readonly=True)
+
+    def residual(x, b):
+        set_state(x)
+        b.setArray(dolfinx.fem.assemble_vector(residual_form).array)
+
+    def jacobian(x):
+        set_state(x)
+        A = dolfinx.fem.petsc.assemble_matrix(jacobian_form)
+        A.assemble()
+        return A
+
+    def value(x):
+        set_state(x)
+        e = dolfinx.fem.assemble_scalar(energy_form)
+        return e if np.isfinite(e) else np.inf
+
+    fixed = np.zeros(3 * V.dofmap.index_map.size_local, dtype=bool)
+    fixed[bcs[0].dof_indices()[0]] = True
+    cells = np.asarray(V.dofmap.list).reshape(-1, 4)
+    return variants.LocalRelaxation(residual, jacobian, value, cells, fixed), residual, value
+
+
+def _block_at_rest(n: int = 5):
+    """A neo-Hookean unit cube of n x n x n x 6 tetrahedra at rest, clamped at z = 0."""
+    mesh = dolfinx.mesh.create_unit_cube(
+        MPI.COMM_SELF, n, n, n, cell_type=dolfinx.mesh.CellType.tetrahedron
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    energy = fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * ufl.dx
+    facets = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    bc = dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, facets), V)
+    return u, energy, [bc]
+
+
+def test_local_relaxation_returns_a_pushed_vertex_and_leaves_the_rest(variants):
+    """``--relax``: a block at rest with one interior vertex pushed 0.04 and another, far from
+    it, 0.004: the residual is concentrated round the first (the second's share of ``|F|^2`` is
+    about 1e-4), so the patch is the first vertex's cells; relaxed, the first vertex is back
+    at rest to a small fraction of its push, the energy fell, and no dof outside the patch
+    moved (the second vertex keeps its push exactly)."""
+    u, energy, bcs = _block_at_rest()
+    X = u.function_space.tabulate_dof_coordinates()
+    near, far = (int(np.argmin(np.linalg.norm(X - p, axis=1))) for p in ([0.2] * 3, [0.8] * 3))
+    pushed = np.zeros_like(X)
+    pushed[near] = (0.04, -0.03, 0.02)
+    pushed[far] = (0.004, 0.0, -0.003)
+    relaxation, residual, value = _relaxation(variants, u, energy, bcs)
+    x = u.x.petsc_vec.copy()
+    x.setArray(pushed.ravel())
+    F = x.duplicate()
+    residual(x, F)
+    before = value(x)
+    dofs, iterations, start, end = relaxation.relax(x, F)
+    moved = x.getArray().reshape(-1, 3)
+    patch = np.unique(dofs // 3)
+    assert near in patch and far not in patch
+    assert 1 <= iterations <= variants.RELAX_ITERATIONS and end < variants.RELAX_RTOL * start
+    assert np.linalg.norm(moved[near]) < 0.05 * np.linalg.norm(pushed[near])
+    assert value(x) < before
+    outside = np.setdiff1d(np.arange(len(X)), patch)
+    assert np.array_equal(moved[outside], pushed[outside])
+    assert np.array_equal(moved[far], pushed[far])
+    assert relaxation.uses == 1 and relaxation.local_iterations == iterations
+
+
+def test_local_relaxation_leaves_a_spread_residual(variants):
+    """Every interior vertex pushed alike: no dozen vertices hold 80 % of ``|F|^2``, so
+    ``--relax`` does nothing; the clamped dofs are never in a patch."""
+    u, energy, bcs = _block_at_rest()
+    X = u.function_space.tabulate_dof_coordinates()
+    interior = np.all((X > 1e-9) & (X < 1 - 1e-9), axis=1)
+    relaxation, residual, _ = _relaxation(variants, u, energy, bcs)
+    x = u.x.petsc_vec.copy()
+    pushed = np.zeros_like(X)
+    pushed[interior] = (0.01, 0.0, 0.0) * np.sin(7 * X[interior, :1])
+    x.setArray(pushed.ravel())
+    F = x.duplicate()
+    residual(x, F)
+    assert relaxation.patch(F) is None and relaxation.relax(x, F) is None
+    assert np.array_equal(x.getArray(), pushed.ravel()) and relaxation.uses == 0
+    # a single bottom vertex pushed: its patch holds no clamped dof
+    bottom = int(np.argmin(np.linalg.norm(X - [0.4, 0.4, 0.0], axis=1)))
+    above = int(np.argmin(np.linalg.norm(X - [0.4, 0.4, 0.2], axis=1)))
+    pushed[:] = 0.0
+    pushed[above] = (0.0, 0.0, 0.05)
+    x.setArray(pushed.ravel())
+    residual(x, F)
+    dofs = relaxation.patch(F)
+    clamped = bcs[0].dof_indices()[0]
+    assert dofs.size > 0 and not np.isin(dofs, clamped).any()
+    round_above = relaxation.cells[(relaxation.cells == above).any(axis=1)]
+    assert bottom in round_above and np.isin(3 * bottom + 2, clamped)
