@@ -172,8 +172,8 @@ def _block_at_rest(n: int = 5):
 
 def test_local_relaxation_returns_a_pushed_vertex_and_leaves_the_rest(variants):
     """``--relax``: a block at rest with one interior vertex pushed 0.04 and another, far from
-    it, 0.004: the residual is concentrated round the first (the second's share of ``|F|^2`` is
-    about 1e-4), so the patch is the first vertex's cells; relaxed, the first vertex is back
+    it, 0.004: the residual is concentrated round the first (the second's cells hold 0.8 % of
+    ``|F|^2``), so the patch is the first vertex's cells; relaxed, the first vertex is back
     at rest to a small fraction of its push, the energy fell, and no dof outside the patch
     moved (the second vertex keeps its push exactly)."""
     u, energy, bcs = _block_at_rest()
