@@ -100,6 +100,13 @@ def scalar_dofs(V: dolfinx.fem.FunctionSpace, n_cells: int) -> np.ndarray:
     return (bs * blocks[:, :, None] + np.arange(bs)).reshape(n_cells, -1)
 
 
+def dirichlet_mask(V: dolfinx.fem.FunctionSpace, bcs: list) -> np.ndarray:
+    """Which scalar dofs of ``V`` the conditions ``bcs`` hold (serial: global = local)."""
+    fixed = np.zeros(V.dofmap.index_map.size_local * V.dofmap.index_map_bs, dtype=bool)
+    fixed[global_dirichlet_dofs(V.mesh.comm, V, bcs)] = True
+    return fixed
+
+
 def definite_correction(K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``|K| - K`` for each symmetric matrix of the stack ``K`` with a negative eigenvalue
     (twice the negative eigenvalues' part, its sign turned), and which of ``K`` they are."""
@@ -144,9 +151,7 @@ class DefiniteHessians:
         self.matrix = dolfinx.fem.create_matrix(self.form)
         self.dofs = scalar_dofs(V, broken_dofs.shape[0])
         self.size = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
-        fixed = np.zeros(self.size, dtype=bool)
-        fixed[global_dirichlet_dofs(V.mesh.comm, V, bcs)] = True  # serial: global = local
-        self.free = ~fixed[self.dofs]  # (n_cells, n)
+        self.free = ~dirichlet_mask(V, bcs)[self.dofs]  # (n_cells, n)
         self._entries = cell_entries(self.matrix, broken_dofs)
         #: whether the next Jacobians are corrected
         self.active = True
@@ -253,21 +258,23 @@ class LocalRelaxation:
         return dofs[~self.fixed[dofs]].astype(PETSc.IntType)
 
     def relax(self, x: PETSc.Vec, F: PETSc.Vec) -> tuple | None:
-        """Relax ``x`` in place from its residual ``F`` (not updated); returns (the patch's
-        dofs, iterations, the patch's residual norm before and after), or None where the
-        residual is not concentrated."""
+        """Relax ``x`` in place from its residual ``F``, which then holds the relaxed
+        iterate's; returns (the patch's dofs, iterations, the patch's residual norm before and
+        after), or None (nothing changed) where the residual is not concentrated."""
         dofs = self.patch(F)
         if dofs is None or dofs.size == 0:
             return None
         rows = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
-        b, trial = F.duplicate(), x.duplicate()
+        trial = x.duplicate()
         energy = self.energy(x)
         start = np.linalg.norm(F.getValues(dofs))
-        iterations = 0
+        iterations, current = 0, True  # current: F is the residual at x
         try:
             for iterations in range(1, self.iterations + 1):
-                self.residual(x, b)
-                f = b.getValues(dofs)
+                if not current:
+                    self.residual(x, F)
+                    current = True
+                f = F.getValues(dofs)
                 if np.linalg.norm(f) < RELAX_RTOL * start:
                     iterations -= 1
                     break
@@ -291,11 +298,12 @@ class LocalRelaxation:
                 if not moved:
                     break
                 trial.copy(x)
-                energy = value
-            self.residual(x, b)
-            norm = np.linalg.norm(b.getValues(dofs))
+                energy, current = value, False
+            if not current:
+                self.residual(x, F)
+            norm = np.linalg.norm(F.getValues(dofs))
         finally:
-            for obj in (rows, b, trial):
+            for obj in (rows, trial):
                 obj.destroy()
         self.uses += 1
         self.local_iterations += iterations
@@ -303,8 +311,8 @@ class LocalRelaxation:
 
     def install(self, problem) -> None:
         """Relax before each Newton step of ``problem`` (a ContactProblem) after a solve's
-        first, chained before the problem's own update callback; the SNES's residual and its
-        norm are then those of the relaxed iterate."""
+        first, chained before the problem's own update callback; the SNES's residual (updated by
+        :meth:`relax`) and its norm are then those of the relaxed iterate."""
         snes = problem.snes
         then, args, kwargs = snes.getUpdate()
 
@@ -317,7 +325,6 @@ class LocalRelaxation:
                 if done is not None:
                     # the problem's residual and energy kept for the last trial state are stale
                     problem._trial_valid, problem._energy_value = False, np.nan
-                    s.computeFunction(x, F)
                     s.setFunctionNorm(F.norm())
                     dofs, iterations, before, after = done
                     print(
@@ -333,9 +340,6 @@ class LocalRelaxation:
 def relaxation_of(problem, cells: np.ndarray) -> LocalRelaxation:
     """``--relax``'s :class:`LocalRelaxation` on a ContactProblem's assembler."""
     assembler = problem.assembler
-    fixed = np.zeros(3 * (cells.max() + 1), dtype=bool)
-    for bc in assembler.bcs:
-        fixed[bc.dof_indices()[0]] = True
 
     def residual(x, b):
         assembler.set_state(x)
@@ -353,6 +357,7 @@ def relaxation_of(problem, cells: np.ndarray) -> LocalRelaxation:
         assembler.set_state(x)
         return assembler.total_energy() if assembler.min_det_F() > 0.0 else np.inf
 
+    fixed = dirichlet_mask(problem.u.function_space, assembler.bcs)
     return LocalRelaxation(residual, jacobian, energy, cells, fixed)
 
 

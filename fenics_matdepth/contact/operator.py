@@ -377,7 +377,7 @@ class ContactOperator(FrictionMixin):
         return r["verts"], r["hess"]
 
     def pair_energies(self) -> tuple[np.ndarray, np.ndarray]:
-        """This rank's evaluated pairs now: their global vertices (n, 7) and energies (F L)."""
+        """This rank's evaluated pairs now: global vertices (n, 7; collocation n, 5), energies."""
         r = self._evaluate(False, False)
         return self.surface.global_vertex[r["verts"]], r["energy"]
 
