@@ -20,7 +20,12 @@
   solved with every other vertex held, by up to ``RELAX_ITERATIONS`` Newton iterations on
   that patch (its block of the Jacobian, dense, and a backtracking search on the energy); the
   global step goes on from the relaxed state (:class:`LocalRelaxation`, one ``RELAX`` line per
-  use). Each local iteration assembles the whole residual, Jacobian and energy.
+  use). ``--relax`` (``whole``): each local iteration assembles the whole residual, Jacobian
+  and energy. ``--relax patch``: over the patch alone, the bulk over the cells touching its
+  vertices and the contact over the candidate pairs holding one of them
+  (``patch_assembly.py``); then the whole residual once, at the relaxed state.
+  ``--relax-iterations``, ``--relax-vertices``, ``--relax-share``: ``RELAX_ITERATIONS``,
+  ``RELAX_VERTICES`` and ``RELAX_SHARE`` instead of the defaults.
 
 Serial only. The demo's output goes to stdout with ``bench_knee.py``'s monitors on; its
 figures come from ``bench_knee.py --from-log``::
@@ -224,6 +229,32 @@ class DefiniteHessians:
         snes.setUpdate(update)
 
 
+class WholeSystem:
+    """A patch's energy, gradient and Hessian from the whole problem's (each evaluation
+    assembles everything; the energy is the whole energy): the gradient is the residual's rows
+    at the patch's dofs, and the residual is left in ``F``."""
+
+    def __init__(self, relaxation: LocalRelaxation, dofs: np.ndarray, F: PETSc.Vec):
+        self.relaxation, self.dofs, self.F = relaxation, dofs, F
+        self.rows = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
+
+    def energy(self, x: PETSc.Vec) -> float:
+        return self.relaxation.energy(x)
+
+    def gradient(self, x: PETSc.Vec) -> np.ndarray:
+        self.relaxation.residual(x, self.F)
+        return self.F.getValues(self.dofs)
+
+    def hessian(self, x: PETSc.Vec) -> np.ndarray:
+        block = self.relaxation.jacobian(x).createSubMatrix(self.rows, self.rows)
+        K = block.convert("dense").getDenseArray().copy()
+        block.destroy()
+        return K
+
+    def destroy(self) -> None:
+        self.rows.destroy()
+
+
 class LocalRelaxation:
     """``--relax`` (see the module docstring): the equilibrium of the vertices holding most of
     the residual, and of their neighbours, with every other vertex held. Serial.
@@ -235,15 +266,20 @@ class LocalRelaxation:
         energy: ``energy(x)``, the energy at ``x`` (``inf`` where inadmissible).
         cells: each cell's vertices, ``(n_cells, 4)``; dof ``3 v + i`` is vertex v's i-th.
         fixed: which dofs are held (Dirichlet), a boolean array.
+        restricted: ``restricted(dofs)``, the patch's model assembled over the patch alone
+            (``patch_assembly.PatchAssembly.model``: ``energy``, ``gradient`` and ``hessian``
+            at a state, ``destroy``), or None: the whole problem's (:class:`WholeSystem`).
     """
 
     def __init__(self, residual, jacobian, energy, cells: np.ndarray, fixed: np.ndarray,
                  share: float = RELAX_SHARE, vertices: int = RELAX_VERTICES,
-                 iterations: int = RELAX_ITERATIONS):  # fmt: skip
+                 iterations: int = RELAX_ITERATIONS, restricted=None):  # fmt: skip
         self.residual, self.jacobian, self.energy = residual, jacobian, energy
+        self.restricted = restricted
         self.cells, self.fixed = cells, fixed
         self.share, self.vertices, self.iterations = share, vertices, iterations
         self.uses = self.local_iterations = 0
+        self.seconds = 0.0  # in relax (the relaxed state's whole residual included)
 
     def patch(self, F: PETSc.Vec) -> np.ndarray | None:
         """The free dofs of the patch round the vertices holding ``share`` of ``|F|^2``, or
@@ -264,23 +300,25 @@ class LocalRelaxation:
         dofs = self.patch(F)
         if dofs is None or dofs.size == 0:
             return None
-        rows = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
+        tic = time.perf_counter()
+        whole = self.restricted is None
+        model = WholeSystem(self, dofs, F) if whole else self.restricted(dofs)
         trial = x.duplicate()
-        energy = self.energy(x)
-        start = np.linalg.norm(F.getValues(dofs))
-        iterations, current = 0, True  # current: F is the residual at x
+        energy = model.energy(x)
+        # the whole problem's gradient at x is F's rows; a restricted one is the energy's alone
+        # (without the lifting of Dirichlet values not yet reached)
+        f = F.getValues(dofs) if whole else model.gradient(x)
+        start = np.linalg.norm(f)
+        iterations, current = 0, True  # current: f is the gradient at x
         try:
             for iterations in range(1, self.iterations + 1):
                 if not current:
-                    self.residual(x, F)
+                    f = model.gradient(x)
                     current = True
-                f = F.getValues(dofs)
                 if np.linalg.norm(f) < RELAX_RTOL * start:
                     iterations -= 1
                     break
-                block = self.jacobian(x).createSubMatrix(rows, rows)
-                K = block.convert("dense").getDenseArray().copy()
-                block.destroy()
+                K = model.hessian(x)
                 step = np.linalg.lstsq(K, f, rcond=None)[0]
                 slope = -f @ step
                 if not slope < 0.0:  # the patch's Newton step climbs: a gradient step instead
@@ -291,7 +329,7 @@ class LocalRelaxation:
                     x.copy(trial)
                     trial.setValues(dofs, x.getValues(dofs) - length * step)
                     trial.assemble()
-                    value = self.energy(trial)
+                    value = model.energy(trial)
                     if value <= energy + 1e-4 * length * slope:
                         moved = True
                         break
@@ -299,14 +337,15 @@ class LocalRelaxation:
                     break
                 trial.copy(x)
                 energy, current = value, False
-            if not current:
+            if not (whole and current):  # WholeSystem.gradient leaves the residual in F
                 self.residual(x, F)
             norm = np.linalg.norm(F.getValues(dofs))
         finally:
-            for obj in (rows, trial):
-                obj.destroy()
+            trial.destroy()
+            model.destroy()
         self.uses += 1
         self.local_iterations += iterations
+        self.seconds += time.perf_counter() - tic
         return dofs, iterations, start, norm
 
     def install(self, problem) -> None:
@@ -337,8 +376,10 @@ class LocalRelaxation:
         snes.setUpdate(update)
 
 
-def relaxation_of(problem, cells: np.ndarray) -> LocalRelaxation:
-    """``--relax``'s :class:`LocalRelaxation` on a ContactProblem's assembler."""
+def relaxation_of(problem, cells: np.ndarray, energy: ufl.Form | None = None) -> LocalRelaxation:
+    """``--relax``'s :class:`LocalRelaxation` on a ContactProblem's assembler; given the bulk
+    ``energy`` (UFL), each patch is assembled over itself (``--relax patch``:
+    :class:`patch_assembly.PatchAssembly`), the dofs it holds held on every patch."""
     assembler = problem.assembler
 
     def residual(x, b):
@@ -353,12 +394,19 @@ def relaxation_of(problem, cells: np.ndarray) -> LocalRelaxation:
         assembler.jacobian(assembler.matrix)
         return assembler.matrix
 
-    def energy(x):
+    def value(x):
         assembler.set_state(x)
         return assembler.total_energy() if assembler.min_det_F() > 0.0 else np.inf
 
     fixed = dirichlet_mask(problem.u.function_space, assembler.bcs)
-    return LocalRelaxation(residual, jacobian, energy, cells, fixed)
+    restricted = None
+    if energy is not None:
+        from patch_assembly import PatchAssembly
+
+        patches = PatchAssembly(energy, problem.u, assembler.contact)
+        fixed[patches.held] = True
+        restricted = patches.model
+    return LocalRelaxation(residual, jacobian, value, cells, fixed, restricted=restricted)
 
 
 def lowest_eigenvalue_bracket(A: PETSc.Mat) -> float:
@@ -478,7 +526,10 @@ def main() -> None:
     parser.add_argument("--hessian", choices=HESSIANS, default="exact")
     parser.add_argument("--snes", choices=("newtonls", "newtontr"), default="newtonls")
     parser.add_argument("--escape-saddles", action="store_true")
-    parser.add_argument("--relax", action="store_true")
+    parser.add_argument("--relax", nargs="?", const="whole", choices=("whole", "patch"))
+    parser.add_argument("--relax-iterations", type=int, default=RELAX_ITERATIONS)
+    parser.add_argument("--relax-vertices", type=int, default=RELAX_VERTICES)
+    parser.add_argument("--relax-share", type=float, default=RELAX_SHARE)
     parser.add_argument("--degrees", type=float, default=150.0)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--output", required=True, help="the demo's output folder")
@@ -513,7 +564,10 @@ def main() -> None:
             escapes.append(escape)
         if args.relax:
             cells = np.asarray(problem.u.function_space.dofmap.list).reshape(-1, 4)
-            relaxation = relaxation_of(problem, cells)
+            energy = demo["energy"] if args.relax == "patch" else None
+            relaxation = relaxation_of(problem, cells, energy)
+            relaxation.iterations = args.relax_iterations
+            relaxation.vertices, relaxation.share = args.relax_vertices, args.relax_share
             relaxation.install(problem)
             relaxations.append(relaxation)
 
@@ -535,7 +589,7 @@ def main() -> None:
         for relaxation in relaxations:
             print(
                 f"local relaxation: {relaxation.uses} patches relaxed in "
-                f"{relaxation.local_iterations} local Newton iterations"
+                f"{relaxation.local_iterations} local Newton iterations, {relaxation.seconds:.1f} s"
             )
 
 

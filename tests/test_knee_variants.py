@@ -11,9 +11,10 @@ import dolfinx.fem.petsc
 import numpy as np
 import pytest
 import ufl
-from conftest import aij_matrix, benchmark_module
+from conftest import aij_matrix, benchmark_module, merged_mesh
 
 import fenics_matdepth as fm
+from fenics_matdepth.meshing import box_tetrahedra
 
 
 @pytest.fixture(scope="module")
@@ -227,3 +228,88 @@ def test_local_relaxation_leaves_a_spread_residual(variants):
     assert dofs.size > 0 and not np.isin(dofs, clamped).any()
     round_above = relaxation.cells[(relaxation.cells == above).any(axis=1)]
     assert bottom in round_above and np.isin(3 * bottom + 2, clamped)
+
+
+def _sunk_blocks():
+    """A 1 x 1 x 0.5 block (cell tag 1) and a smaller one (tag 2) sunk 0.03 into it, the
+    lower one's bottom clamped and the upper one's top pushed on by a spring (an
+    exterior-facet integral); a ContactProblem of the two, each its own neo-Hookean, at a
+    state with the Dirichlet values reached."""
+    mesh = merged_mesh(
+        MPI.COMM_SELF,
+        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
+        box_tetrahedra(2, (0.25, 0.2, 0.51), (0.5, 0.55, 0.4)),
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    tdim = mesh.topology.dim
+    n_cells = mesh.topology.index_map(tdim).size_local
+    mid = dolfinx.mesh.compute_midpoints(mesh, tdim, np.arange(n_cells, dtype=np.int32))
+    tags = dolfinx.mesh.meshtags(
+        mesh, tdim, np.arange(n_cells, dtype=np.int32), np.where(mid[:, 2] > 0.5, 2, 1)
+    )
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.91))
+    top_tags = dolfinx.mesh.meshtags(mesh, 2, top, np.full(top.size, 7, dtype=np.int32))
+    F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)
+    ds = ufl.Measure("ds", domain=mesh, subdomain_data=top_tags)
+    energy = (
+        fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * dx(1)
+        + fm.materials.neo_hookean(F, mu=0.5, kappa=4.0) * dx(2)
+        + 0.5 * 3.0 * (u[2] + 0.05) ** 2 * ds(7)
+    )
+    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    clamped = dolfinx.fem.locate_dofs_topological(V, 2, bottom)
+    bcs = [dolfinx.fem.dirichletbc(np.zeros(3), clamped, V)]
+    X = V.tabulate_dof_coordinates()
+    rng = np.random.default_rng(3)
+    values = 0.004 * rng.standard_normal(X.shape)
+    values[X[:, 2] > 0.505, 2] -= 0.03
+    values[np.isclose(X[:, 2], 0.0)] = 0.0
+    u.x.array[:] = values.ravel()
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=50.0)
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    problem = fm.ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    return problem, energy, X
+
+
+def test_a_patch_assembled_over_itself_is_the_whole_problem_there(variants):
+    """``--relax patch``: on two blocks sunk into each other (two cell tags, a spring on the
+    upper one's top), the patch round a vertex of the upper block's bottom, in contact, has the
+    whole problem's gradient (the residual's rows) and Hessian (the Jacobian's block) there, and
+    its energy changes as the whole problem's when its dofs move; the spring's vertices are
+    held on every patch."""
+    patch_assembly = benchmark_module("patch_assembly")
+    problem, energy, X = _sunk_blocks()
+    cells = np.asarray(problem.u.function_space.dofmap.list).reshape(-1, 4)
+    relaxation = variants.relaxation_of(problem, cells, energy)
+    assembler = problem.assembler
+    x = problem.u.x.petsc_vec.copy()
+    assembler.set_state(x)
+    assert assembler.contact.energy() > 0.0
+    F = x.duplicate()
+    assert assembler.residual(x, F)
+    vertex = int(np.argmin(np.linalg.norm(X - [0.375, 0.35, 0.51], axis=1)))
+    around = np.unique(cells[(cells == vertex).any(axis=1)])
+    dofs = (3 * around[:, None] + np.arange(3)).ravel()
+    dofs = dofs[~relaxation.fixed[dofs]].astype(np.int32)
+    top = np.isclose(X[:, 2], 0.91)
+    assert relaxation.fixed.reshape(-1, 3)[top].all() and dofs.size == 3 * around.size
+    model = relaxation.restricted(dofs)
+    assert isinstance(model, patch_assembly.PatchModel) and model.pair_a.size > 0
+    gradient = model.gradient(x)
+    assert np.abs(gradient).max() > 1e-3
+    assert np.allclose(gradient, F.getValues(dofs), rtol=1e-10, atol=1e-12 * np.abs(gradient).max())
+    whole = variants.WholeSystem(relaxation, dofs, F).hessian(x)
+    hessian = model.hessian(x)
+    assert np.allclose(hessian, whole, rtol=1e-10, atol=1e-12 * np.abs(whole).max())
+    trial = x.copy()
+    step = 0.003 * np.random.default_rng(4).standard_normal(dofs.size)
+    trial.setValues(dofs, x.getValues(dofs) + step)
+    trial.assemble()
+    change = model.energy(trial) - model.energy(x)
+    assembler.set_state(trial)
+    after = assembler.total_energy()
+    assembler.set_state(x)
+    assert change == pytest.approx(after - assembler.total_energy(), rel=1e-9)
+    assert abs(change) > 1e-6

@@ -1,0 +1,200 @@
+"""The energy, gradient and Hessian of a contact problem on a patch of vertices, the others
+held, assembled over the patch's cells and contact pairs only (``knee_variants.py --relax
+patch``). Serial.
+
+:class:`PatchAssembly` compiles the bulk energy and its first two derivatives once; for each
+patch it makes DOLFINx forms of the same compiled code whose cell integrals run over the cells
+touching a patch vertex (``dolfinx.fem.create_form`` with those cells as the integrals'
+subdomains), and keeps the contact operator's candidate pairs (found with its skin) that hold a
+patch vertex. A patch's energy differs from the whole problem's by the energy of what it does
+not touch, which the patch's vertices do not change; its gradient and Hessian at the patch's
+dofs are the whole problem's.
+
+Left out: friction, and the dofs of vertices on a facet of an exterior-facet integral (the
+knee's spring on the quadriceps' cut), which are held.
+"""
+
+from __future__ import annotations
+
+import types
+
+from petsc4py import PETSc
+
+import dolfinx
+import numpy as np
+import ufl
+
+from fenics_matdepth.contact import evaluation, pairs
+from fenics_matdepth.geometry.intersect import near_pairs
+
+#: the contact pairs of a patch: the candidates holding a patch vertex whose triangle and
+#: tetrahedron lie within this many mean boundary edges of each other
+NEAR_EDGES = 0.1
+
+
+class PatchAssembly:
+    """Patch models (:meth:`model`) of a contact problem whose bulk energy is ``energy``.
+
+    Args:
+        energy: the bulk energy (UFL) of ``u``; its cell integrals' subdomains are cell tags
+            or everywhere.
+        u: the displacement (P1 on tetrahedra).
+        contact: the contact operator of ``u`` (its state is the one at :meth:`model`).
+    """
+
+    def __init__(self, energy: ufl.Form, u: dolfinx.fem.Function, contact):
+        V = u.function_space
+        mesh = V.mesh
+        if mesh.comm.size > 1:
+            raise NotImplementedError("PatchAssembly runs serially only")
+        self.u, self.V, self.mesh, self.contact = u, V, mesh, contact
+        residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+        jacobian = ufl.derivative(residual, u, ufl.TrialFunction(V))
+        self._compiled = [
+            (dolfinx.fem.compile_form(mesh.comm, form), form, spaces)
+            for form, spaces in ((energy, []), (residual, [V]), (jacobian, [V, V]))
+        ]
+        self.cells = np.asarray(V.dofmap.list).reshape(-1, 4)
+        self.X = V.tabulate_dof_coordinates()
+        self._volumes = self._signed_volumes(self.X)
+        # the cells of each cell integral's subdomain (None: every cell)
+        self._cell_sets: dict[int, np.ndarray | None] = {}
+        held = []
+        for itg in energy.integrals():
+            kind, ident, data = itg.integral_type(), itg.subdomain_id(), itg.subdomain_data()
+            if kind == "cell":
+                everywhere = ident in ("everywhere", "otherwise")
+                self._cell_sets[-1 if everywhere else int(ident)] = (
+                    None if everywhere else data.find(int(ident))
+                )
+            elif kind == "exterior_facet":
+                facets = (
+                    dolfinx.mesh.exterior_facet_indices(mesh.topology)
+                    if ident in ("everywhere", "otherwise")
+                    else data.find(int(ident))
+                )
+                held.append(dolfinx.fem.locate_dofs_topological(V, mesh.topology.dim - 1, facets))
+            else:
+                raise NotImplementedError(f"{kind} integrals on a patch")
+        blocks = np.unique(np.concatenate(held)) if held else np.empty(0, np.int32)
+        #: dofs held on every patch (on a facet of an exterior-facet integral)
+        self.held = (3 * blocks[:, None] + np.arange(3)).ravel()
+
+    def _signed_volumes(self, x: np.ndarray, cells: np.ndarray | None = None) -> np.ndarray:
+        c = self.cells if cells is None else cells
+        p = x[c]
+        return np.linalg.det(p[:, 1:] - p[:, :1])
+
+    def model(self, dofs: np.ndarray) -> PatchModel:
+        """The patch of the free dofs ``dofs`` (whole vertices), at the contact operator's
+        current candidate pairs."""
+        return PatchModel(self, np.asarray(dofs))
+
+    def forms(self, cells: np.ndarray) -> list[dolfinx.fem.Form]:
+        """The energy, residual and Jacobian forms over ``cells`` (sorted)."""
+        subdomains = []
+        for ident in sorted(self._cell_sets):
+            members = self._cell_sets[ident]
+            chosen = cells if members is None else np.intersect1d(members, cells)
+            subdomains.append((ident, chosen.astype(np.int32)))
+        out = []
+        for compiled, form, spaces in self._compiled:
+            out.append(
+                dolfinx.fem.create_form(
+                    compiled,
+                    spaces,
+                    self.mesh,
+                    {dolfinx.fem.IntegralType.cell: subdomains},
+                    {c: c for c in form.coefficients()},
+                    {c: c for c in form.constants()},
+                )
+            )
+        return out
+
+
+class PatchModel:
+    """One patch: energy, gradient and Hessian at its dofs' values of a full state ``x``."""
+
+    def __init__(self, owner: PatchAssembly, dofs: np.ndarray):
+        self.owner, self.dofs = owner, dofs
+        vertices = np.unique(dofs // 3)
+        touching = np.isin(owner.cells, vertices).any(axis=1)
+        self.cells = np.flatnonzero(touching).astype(np.int32)
+        self.energy_form, self.residual_form, self.jacobian_form = owner.forms(self.cells)
+        self.matrix = dolfinx.fem.create_matrix(self.jacobian_form)
+        self.local = np.full(3 * owner.X.shape[0], -1, dtype=np.int64)
+        self.local[dofs] = np.arange(dofs.size)
+        contact = owner.contact
+        s = contact.surface
+        search = contact.pair_search
+        verts = pairs.pair_vertices(s, contact.integration, search.pair_a, search.pair_k)
+        chosen = np.isin(s.global_vertex[verts], vertices).any(axis=1)
+        pa, pk = search.pair_a[chosen], search.pair_k[chosen]
+        if contact.integration == "area":
+            # of the candidates (boxes within the search's skin), those within NEAR_EDGES mean
+            # boundary edges: the local steps move the patch's vertices by less
+            pa, pk = near_pairs(s.x, s.tri, s.tets, pa, pk, NEAR_EDGES * s.mean_edge)
+        self.pair_a, self.pair_k = pa, pk
+        # the pairs' dofs in the patch's numbering (-1: held)
+        held = s.global_vertex[pairs.pair_vertices(s, contact.integration, pa, pk)]
+        held_dofs = (3 * held[:, :, None] + np.arange(3)).reshape(pa.size, -1)
+        self.pair_dofs = self.local[held_dofs]
+
+    def _set(self, x: PETSc.Vec) -> None:
+        u = self.owner.u
+        if x.handle == u.x.petsc_vec.handle:
+            raise ValueError("a patch model evaluates states apart from u's own vector")
+        u.x.array[:] = x.getArray(readonly=True)
+
+    def _contact(self, want_grad: bool, want_hess: bool) -> tuple:
+        contact = self.owner.contact
+        s = contact.surface
+        current = types.SimpleNamespace(
+            x=s.X + self.owner.u.x.array.reshape(-1, 3)[s.global_vertex],
+            kernel_depth=s.kernel_depth, tri=s.tri, kernel_tets=s.kernel_tets,
+            weight=s.weight, nodes=s.nodes, global_vertex=s.global_vertex,
+        )  # fmt: skip
+        return evaluation.pair_arrays(
+            current, contact.integration, self.pair_a, self.pair_k, contact.penalty,
+            contact.pressure, contact._pressure_width, want_grad, want_hess,
+        )  # fmt: skip
+
+    def energy(self, x: PETSc.Vec) -> float:
+        """The patch's energy at ``x`` (``inf`` where a patch cell is inverted)."""
+        self._set(x)
+        owner = self.owner
+        cells = owner.cells[self.cells]
+        current = owner.X + owner.u.x.array.reshape(-1, 3)
+        ratio = owner._signed_volumes(current, cells) / owner._volumes[self.cells]
+        if not ratio.min() > 0.0:
+            return np.inf
+        value = dolfinx.fem.assemble_scalar(self.energy_form)
+        value += float(np.sum(self._contact(False, False)[0]))
+        return value if np.isfinite(value) else np.inf
+
+    def gradient(self, x: PETSc.Vec) -> np.ndarray:
+        """The energy's gradient at the patch's dofs, at ``x``."""
+        self._set(x)
+        g = dolfinx.fem.assemble_vector(self.residual_form).array[self.dofs]
+        energy, grad, _ = self._contact(True, False)
+        d, grad = self.pair_dofs[energy > 0.0], grad[energy > 0.0]  # the pairs in contact
+        keep = d >= 0
+        np.add.at(g, d[keep], grad[keep])
+        return g
+
+    def hessian(self, x: PETSc.Vec) -> np.ndarray:
+        """The energy's Hessian on the patch's dofs (dense), at ``x``."""
+        self._set(x)
+        self.matrix.set_value(0.0)
+        dolfinx.fem.assemble_matrix(self.matrix, self.jacobian_form)
+        K = self.matrix.to_scipy().tocsr()[self.dofs][:, self.dofs].toarray()
+        energy, _, hess = self._contact(True, True)
+        d, hess = self.pair_dofs[energy > 0.0], hess[energy > 0.0]  # the pairs in contact
+        keep = (d[:, :, None] >= 0) & (d[:, None, :] >= 0)
+        rows = np.broadcast_to(d[:, :, None], hess.shape)[keep]
+        cols = np.broadcast_to(d[:, None, :], hess.shape)[keep]
+        np.add.at(K, (rows, cols), hess[keep])
+        return K
+
+    def destroy(self) -> None:
+        """Nothing to release (the forms and the matrix are Python objects)."""
