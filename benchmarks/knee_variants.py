@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+import traceback
 
 import numpy as np
 
@@ -360,7 +361,12 @@ class LocalRelaxation:
             norm = s.getFunctionNorm()
             if iteration > 0 and np.isfinite(norm) and norm > RELAX_MIN_NORM:
                 x = s.getSolution()
-                done = self.relax(x, F)
+                try:
+                    done = self.relax(x, F)
+                except Exception:
+                    # the SNES turns it into a failed solve, which the load steps cut silently
+                    traceback.print_exc()
+                    raise
                 if done is not None:
                     # the problem's residual and energy kept for the last trial state are stale
                     problem._trial_valid, problem._energy_value = False, np.nan

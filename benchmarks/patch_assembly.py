@@ -137,7 +137,7 @@ class PatchModel:
         self.pair_a, self.pair_k = pa, pk
         # the pairs' dofs in the patch's numbering (-1: held)
         held = s.global_vertex[pairs.pair_vertices(s, contact.integration, pa, pk)]
-        held_dofs = (3 * held[:, :, None] + np.arange(3)).reshape(pa.size, -1)
+        held_dofs = (3 * held[:, :, None] + np.arange(3)).reshape(pa.size, 3 * held.shape[1])
         self.pair_dofs = self.local[held_dofs]
 
     def _set(self, x: PETSc.Vec) -> None:

@@ -313,3 +313,29 @@ def test_a_patch_assembled_over_itself_is_the_whole_problem_there(variants):
     assembler.set_state(x)
     assert change == pytest.approx(after - assembler.total_energy(), rel=1e-9)
     assert abs(change) > 1e-6
+
+
+def test_a_patch_no_contact_pair_reaches_is_the_bulk_alone(variants):
+    """``--relax patch`` deep inside a body (a vertex two cells from the boundary of a clamped
+    block, pushed): the patch has no contact pair, and its gradient is the residual's rows."""
+    benchmark_module("patch_assembly")
+    u, energy, bcs = _block_at_rest()
+    V = u.function_space
+    X = V.tabulate_dof_coordinates()
+    vertex = int(np.argmin(np.linalg.norm(X - [0.4, 0.4, 0.4], axis=1)))
+    u.x.array.reshape(-1, 3)[vertex] = (0.03, -0.02, 0.01)
+    contact = fm.ContactOperator(u, fm.material_depth(V.mesh), penalty=50.0)
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    problem = fm.ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    cells = np.asarray(V.dofmap.list).reshape(-1, 4)
+    relaxation = variants.relaxation_of(problem, cells, energy)
+    x = u.x.petsc_vec.copy()
+    problem.assembler.set_state(x)
+    F = x.duplicate()
+    assert problem.assembler.residual(x, F)
+    dofs = relaxation.patch(F)
+    model = relaxation.restricted(dofs)
+    assert model.pair_a.size == 0 and vertex in dofs // 3
+    gradient = model.gradient(x)
+    assert np.abs(gradient).max() > 1e-2
+    assert np.allclose(gradient, F.getValues(dofs), rtol=1e-10, atol=1e-14)
