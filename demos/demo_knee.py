@@ -855,7 +855,13 @@ class ReportFailures:
         self.problem, self.u, self.contact = problem, problem.u, problem.contact
 
     def solve(self, raise_on_failure: bool = True):
-        result = self.problem.solve(raise_on_failure=False)
+        try:
+            result = self.problem.solve(raise_on_failure=False)
+        except (RuntimeError, FloatingPointError, PETSc.Error) as err:
+            # `solve_load_steps` cuts the step on these too (an error in a SNES callback
+            # reaches it as a PETSc.Error)
+            report(f"    the step to {np.degrees(last['try']):.2f} deg failed: {str(err)[:600]}")
+            raise
         if not result.converged:
             why = result.failure_message()
             if augmented is not None:
