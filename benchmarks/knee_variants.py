@@ -25,7 +25,9 @@
   vertices and the contact over the candidate pairs holding one of them
   (``patch_assembly.py``); then the whole residual once, at the relaxed state.
   ``--relax-iterations``, ``--relax-vertices``, ``--relax-share``: ``RELAX_ITERATIONS``,
-  ``RELAX_VERTICES`` and ``RELAX_SHARE`` instead of the defaults.
+  ``RELAX_VERTICES`` and ``RELAX_SHARE`` instead of the defaults. ``--relax-det-floor f``
+  (``patch``): a local trial state whose lowest det F on the patch is at most f times the
+  patch's lowest at its start is refused (0, the default: only inverted cells).
 
 Serial only. The demo's output goes to stdout with ``bench_knee.py``'s monitors on; its
 figures come from ``bench_knee.py --from-log``::
@@ -382,10 +384,13 @@ class LocalRelaxation:
         snes.setUpdate(update)
 
 
-def relaxation_of(problem, cells: np.ndarray, energy: ufl.Form | None = None) -> LocalRelaxation:
+def relaxation_of(
+    problem, cells: np.ndarray, energy: ufl.Form | None = None, det_floor: float = 0.0
+) -> LocalRelaxation:
     """``--relax``'s :class:`LocalRelaxation` on a ContactProblem's assembler; given the bulk
     ``energy`` (UFL), each patch is assembled over itself (``--relax patch``:
-    :class:`patch_assembly.PatchAssembly`), the dofs it holds held on every patch."""
+    :class:`patch_assembly.PatchAssembly`, its ``det_floor``), the dofs it holds held on
+    every patch."""
     assembler = problem.assembler
 
     def residual(x, b):
@@ -410,6 +415,7 @@ def relaxation_of(problem, cells: np.ndarray, energy: ufl.Form | None = None) ->
         from patch_assembly import PatchAssembly
 
         patches = PatchAssembly(energy, problem.u, assembler.contact)
+        patches.det_floor = det_floor
         fixed[patches.held] = True
         restricted = patches.model
     return LocalRelaxation(residual, jacobian, value, cells, fixed, restricted=restricted)
@@ -536,6 +542,7 @@ def main() -> None:
     parser.add_argument("--relax-iterations", type=int, default=RELAX_ITERATIONS)
     parser.add_argument("--relax-vertices", type=int, default=RELAX_VERTICES)
     parser.add_argument("--relax-share", type=float, default=RELAX_SHARE)
+    parser.add_argument("--relax-det-floor", type=float, default=0.0)
     parser.add_argument("--degrees", type=float, default=150.0)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--output", required=True, help="the demo's output folder")
@@ -571,9 +578,10 @@ def main() -> None:
         if args.relax:
             cells = np.asarray(problem.u.function_space.dofmap.list).reshape(-1, 4)
             energy = demo["energy"] if args.relax == "patch" else None
-            relaxation = relaxation_of(problem, cells, energy)
+            relaxation = relaxation_of(problem, cells, energy, args.relax_det_floor)
             relaxation.iterations = args.relax_iterations
             relaxation.vertices, relaxation.share = args.relax_vertices, args.relax_share
+
             relaxation.install(problem)
             relaxations.append(relaxation)
 

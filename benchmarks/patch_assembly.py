@@ -48,6 +48,9 @@ class PatchAssembly:
         if mesh.comm.size > 1:
             raise NotImplementedError("PatchAssembly runs serially only")
         self.u, self.V, self.mesh, self.contact = u, V, mesh, contact
+        #: a patch's trial states whose lowest det F is at most this fraction of the patch's
+        #: lowest at its start are refused (0: only inverted cells)
+        self.det_floor = 0.0
         residual = ufl.derivative(energy, u, ufl.TestFunction(V))
         jacobian = ufl.derivative(residual, u, ufl.TrialFunction(V))
         self._compiled = [
@@ -117,6 +120,7 @@ class PatchModel:
 
     def __init__(self, owner: PatchAssembly, dofs: np.ndarray):
         self.owner, self.dofs = owner, dofs
+        self.floor: float | None = None  # the lowest det F a trial state may have (energy)
         vertices = np.unique(dofs // 3)
         touching = np.isin(owner.cells, vertices).any(axis=1)
         self.cells = np.flatnonzero(touching).astype(np.int32)
@@ -160,13 +164,17 @@ class PatchModel:
         )  # fmt: skip
 
     def energy(self, x: PETSc.Vec) -> float:
-        """The patch's energy at ``x`` (``inf`` where a patch cell is inverted)."""
+        """The patch's energy at ``x``: ``inf`` where a patch cell is inverted, or its det F
+        is at most ``det_floor`` times the patch's lowest at the first state asked for (the
+        patch's start)."""
         self._set(x)
         owner = self.owner
         cells = owner.cells[self.cells]
         current = owner.X + owner.u.x.array.reshape(-1, 3)
-        ratio = owner._signed_volumes(current, cells) / owner._volumes[self.cells]
-        if not ratio.min() > 0.0:
+        lowest = (owner._signed_volumes(current, cells) / owner._volumes[self.cells]).min()
+        if self.floor is None:
+            self.floor = owner.det_floor * max(lowest, 0.0)
+        if not (lowest > 0.0 and lowest > self.floor):
             return np.inf
         value = dolfinx.fem.assemble_scalar(self.energy_form)
         value += float(np.sum(self._contact(False, False)[0]))

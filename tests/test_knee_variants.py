@@ -339,3 +339,20 @@ def test_a_patch_no_contact_pair_reaches_is_the_bulk_alone(variants):
     gradient = model.gradient(x)
     assert np.abs(gradient).max() > 1e-2
     assert np.allclose(gradient, F.getValues(dofs), rtol=1e-10, atol=1e-14)
+    # --relax-det-floor: at a floor of 0.5 of the patch's lowest det F at the start (0.75, a
+    # cell of the pushed vertex), a trial flattening a cell to 0.27 is refused; without a
+    # floor it is not
+    det_floor = variants.relaxation_of(problem, cells, energy, det_floor=0.5).restricted(dofs)
+    assert np.isfinite(det_floor.energy(x)) and 0.3 < det_floor.floor < 0.5
+    cell = cells[(cells == vertex).any(axis=1)][0]
+    others = [v for v in cell if v != vertex]
+    moved = x.copy()
+    values = moved.getArray().reshape(-1, 3)
+    plane = X[others].mean(axis=0) + values[others].mean(axis=0)  # the opposite face's centre
+    here = X[vertex] + values[vertex]
+    values[vertex] += 0.7 * (plane - here)  # towards the opposite face
+    ratio = np.linalg.det((X + values)[others] - (X + values)[vertex]) / np.linalg.det(
+        X[others] - X[vertex]
+    )
+    assert 0.0 < ratio < det_floor.floor
+    assert det_floor.energy(moved) == np.inf and np.isfinite(model.energy(moved))
