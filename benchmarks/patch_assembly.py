@@ -62,7 +62,8 @@ class PatchAssembly:
         ]
         self.cells = np.asarray(V.dofmap.list).reshape(-1, 4)
         self.X = V.tabulate_dof_coordinates()
-        self._volumes = self._signed_volumes(self.X)
+        p = self.X[self.cells]
+        self._volumes = np.linalg.det(p[:, 1:] - p[:, :1])  # each cell's, at rest
         # the cells of each cell integral's subdomain (None: every cell)
         self._cell_sets: dict[int, np.ndarray | None] = {}
         held = []
@@ -85,11 +86,6 @@ class PatchAssembly:
         blocks = np.unique(np.concatenate(held)) if held else np.empty(0, np.int32)
         #: dofs held on every patch (on a facet of an exterior-facet integral)
         self.held = (3 * blocks[:, None] + np.arange(3)).ravel()
-
-    def _signed_volumes(self, x: np.ndarray, cells: np.ndarray | None = None) -> np.ndarray:
-        c = self.cells if cells is None else cells
-        p = x[c]
-        return np.linalg.det(p[:, 1:] - p[:, :1])
 
     def model(self, dofs: np.ndarray) -> PatchModel:
         """The patch of the free dofs ``dofs`` (whole vertices), at the contact operator's
@@ -174,8 +170,9 @@ class PatchModel:
         self._set(x)
         owner = self.owner
         cells = owner.cells[self.cells]
-        current = owner.X + owner.u.x.array.reshape(-1, 3)
-        lowest = (owner._signed_volumes(current, cells) / owner._volumes[self.cells]).min()
+        p = owner.X[cells] + owner.u.x.array.reshape(-1, 3)[cells]  # the patch cells' vertices
+        volumes = np.linalg.det(p[:, 1:] - p[:, :1])
+        lowest = (volumes / owner._volumes[self.cells]).min()
         if self.floor is None:
             self.floor = owner.det_floor * max(lowest, 0.0)
         if not (lowest > 0.0 and lowest > self.floor):
