@@ -414,10 +414,9 @@ class ContactProblem(SNESCallbacks, _Releasable):
         return result
 
     def destroy(self) -> None:
-        """Release the problem's PETSc objects now: the SNES with its linear solver and
-        factorisation, the vectors and the matrix (collective: call it on every rank at the
-        same point). The problem cannot solve afterwards; ``u`` and the contact operator are
-        the caller's and stay as they are.
+        """Release the problem's PETSc objects now: the SNES with its linear solvers and
+        factorisations, the vectors and the matrix (collective: on every rank at one point).
+        It cannot solve afterwards; ``u`` and the contact operator stay as they are.
 
         Needed wherever problems are made again and again (a notebook cell run twice, a loop
         over cases): the SNES holds the problem's own methods as its callbacks, a reference
@@ -429,6 +428,7 @@ class ContactProblem(SNESCallbacks, _Releasable):
         for obj in ("snes", "_b", "_x", "_x_trial", "_b_trial", "_x_energy"):
             if getattr(self, obj, None) is not None:
                 getattr(self, obj).destroy()
+        self.release_shift_solver()
         if getattr(self, "assembler", None) is not None:
             self.assembler.destroy()
 

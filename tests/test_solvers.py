@@ -679,6 +679,41 @@ def test_a_step_limit_keeps_each_newton_step_within_it(limit):
     problem.destroy()
 
 
+def _factorisation_analyses() -> int:
+    """MUMPS analyses (symbolic factorisations, LU or LDL^T) logged so far in this process."""
+    return sum(
+        PETSc.Log.Event(name).getPerfInfo()["count"]
+        for name in ("MatLUFactorSym", "MatCholFctrSym")
+    )
+
+
+def test_the_shifted_steps_analyse_the_pattern_once(capfd):
+    """The step limit's shifted steps factorise ``J + mu I`` anew in every rung, on one kept
+    solver whose MUMPS analysis serves every step while the matrix is the problem's: the
+    double well from u_x = 3a with the limit 0.02 takes several shifted steps, and the solve
+    analyses the pattern twice (the Newton steps' solver and the shifted steps'), not once
+    per shifted step (as when each step made its own solver). The steps still keep within
+    the limit and reach the minimum; ``destroy`` releases the kept solver (on 2 ranks nothing
+    is left in PETSc's garbage)."""
+    a = 0.1
+    u, problem = _double_well_block(MPI.COMM_WORLD, a)
+    mesh = u.function_space.mesh
+    problem.step_limit = 0.02
+    u.x.array[0::3] = 3.0 * a
+    PETSc.Log.begin()
+    before = _factorisation_analyses()
+    result = problem.solve()
+    assert result.converged
+    assert np.allclose(u.x.array[0::3], a, rtol=1e-8)
+    assert result.shifted_steps >= 3
+    assert _factorisation_analyses() - before == 2
+    assert problem._shift_kept is not None and problem._shift_kept[0] is problem._A
+    problem.destroy()
+    assert problem._shift_kept is None
+    PETSc.garbage_cleanup(mesh.comm)
+    assert petsc_garbage_entries(mesh.comm, capfd) == 0
+
+
 @pytest.mark.parametrize("value", [0.0, -1.0, np.nan, np.inf])
 def test_a_step_limit_must_be_a_positive_length(value):
     _, problem = _double_well_block(MPI.COMM_WORLD, 0.1)
@@ -999,6 +1034,52 @@ def test_line_search_start_merit_is_not_evaluated_again():
         assert not twice, (name, twice)
     # (this press takes full steps)
     assert len(points["residual"]) == result.iterations + 1
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e-13])
+def test_the_residual_is_dolfinx_lifted_residual(offset):
+    """The residual is DOLFINx's (the form, apply_lifting, set_bc) plus the contact's, to the
+    bit. Where every Dirichlet dof holds its value (offset 0) the assembler leaves out
+    apply_lifting, whose A (g - x) is then zero; a Dirichlet dof off its value by 1e-13
+    (below any tolerance) brings the lifting back, which the bits tell (checked: with the
+    lifting left out there, they differ). At a pressed state with contact, the free dofs moved
+    off it so that the residual is not small."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, g = _press_bcs(mesh, V, 0.9, -0.03)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    assert problem.solve().converged
+    assert contact.diagnostics()["active_pairs"] > 0
+    assembler = problem.assembler
+    x = u.x.petsc_vec.copy()
+    owned = x.getLocalSize()
+    held = assembly.owned_dirichlet_dofs(bcs)
+    free = ~np.isin(np.arange(owned), held)
+    rng = np.random.default_rng(comm.rank)
+    x.getArray()[free] += 1e-3 * rng.standard_normal(int(free.sum()))
+    moved = held[np.abs(g.x.array[held]) > 0.0]
+    x.getArray()[moved[:1]] += offset
+    x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    b, reference = x.duplicate(), x.duplicate()
+    assembler.set_state(x)
+    assert assembler.residual(x, b)
+    with reference.localForm() as local:
+        local.set(0.0)
+    dolfinx.fem.petsc.assemble_vector(reference, assembler.L)
+    contact.add_residual(reference)
+    increment = assembler._dirichlet_increment(x)
+    assert (increment is None) == (comm.allreduce(moved[:1].size) == 0 or offset == 0.0)
+    if increment is not None:
+        contact.add_lifting(reference, increment)
+    dolfinx.fem.petsc.apply_lifting(reference, [assembler.a], [bcs], x0=[x], alpha=-1.0)
+    reference.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    dolfinx.fem.petsc.set_bc(reference, bcs, x, -1.0)
+    assert b.norm() > 1e-3
+    assert np.array_equal(b.getArray(), reference.getArray())
+    for vec in (x, b, reference):
+        vec.destroy()
+    problem.destroy()
 
 
 @pytest.mark.parametrize("friction", [False, True], ids=["frictionless", "friction"])
