@@ -354,10 +354,11 @@ class SNESCallbacks:
         """A copy of ``A`` and the MUMPS solver (``pc_type``) of the shifted steps, kept while
         ``A`` is the problem's matrix: MUMPS then analyses the pattern once per matrix, not
         once per shifted step (on the knee, 197 of a run's 320 analyses, 0.06 s each)."""
-        kept = self._shift_kept
-        if kept is not None and kept[0] is A and kept[1] == pc_type:
-            A.copy(kept[2], structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-            return kept[2], kept[3]
+        if self._shift_kept is not None:
+            matrix, kept_type, B, ksp = self._shift_kept
+            if matrix is A and kept_type == pc_type:
+                A.copy(B, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+                return B, ksp
         self.release_shift_solver()
         B = A.copy()
         ksp = PETSc.KSP().create(A.getComm())
