@@ -14,7 +14,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fenics_matdepth.geometry.ccd import EXIT_DEPTH, EXIT_MARGIN, exit_fraction, sweep_caps
+from fenics_matdepth.geometry.ccd import (
+    EXIT_DEPTH,
+    EXIT_MARGIN,
+    exit_fraction,
+    sweep_caps,
+    triangle_bodies,
+)
 
 # pure numba/numpy: every rank would run the same computation, so the serial pass runs it
 pytestmark = pytest.mark.serial
@@ -145,17 +151,23 @@ def _two_layer_surface():
     return x0, tri
 
 
-def _sweep(x0, x1, tri, exits=True):
+def _sweep(x0, x1, tri, exits=True, entry=0.01, pairs=None, bodies=None):
     sides = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
     keys = sides[:, 0] * x0.shape[0] + sides[:, 1]
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     edges = sides[first]
     tri_edge = inverse.reshape(-1, 3).astype(np.int64)
     edge_owner = (first // 3).astype(np.int64)
-    vertex_owner = np.repeat(np.arange(tri.shape[0], dtype=np.int64), 3)
-    entry = np.full(tri.shape[0], 0.01)
-    pa, pb = np.array([0, 0, 1, 2], dtype=np.int64), np.array([1, 2, 0, 0], dtype=np.int64)
-    return sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, pa, pb, exits)
+    vertex_owner = np.full(x0.shape[0], tri.shape[0], dtype=np.int64)
+    np.minimum.at(vertex_owner, tri.ravel(), np.repeat(np.arange(tri.shape[0]), 3))
+    entry = np.full(tri.shape[0], entry)
+    if pairs is None:
+        pa, pb = np.array([0, 0, 1, 2], dtype=np.int64), np.array([1, 2, 0, 0], dtype=np.int64)
+    else:
+        pa, pb = pairs
+    return sweep_caps(
+        x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, pa, pb, exits, bodies
+    )
 
 
 def test_sweep_caps_a_vertex_leaving_through_the_far_side_only():
@@ -174,3 +186,94 @@ def test_sweep_caps_a_vertex_leaving_through_the_far_side_only():
     x1 = x0.copy()
     x1[6:9, 2] -= 0.4
     assert _sweep(x0, x1, tri)[0] == 1.0
+
+
+def _box_surface(lo, hi, n=2):
+    """The boundary of the box [lo, hi] as triangles, n x n squares a face, outward: (points,
+    triangles)."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    points, tris = [], []
+    s = np.linspace(0.0, 1.0, n + 1)
+    for axis in range(3):
+        u, w = (axis + 1) % 3, (axis + 2) % 3
+        for side in (0, 1):
+            grid = np.empty((n + 1, n + 1, 3))
+            grid[..., axis] = hi[axis] if side else lo[axis]
+            grid[..., u] = lo[u] + s[:, None] * (hi[u] - lo[u])
+            grid[..., w] = lo[w] + s[None, :] * (hi[w] - lo[w])
+            k = sum(len(q) for q in points)
+            points.append(grid.reshape(-1, 3))
+            idx = k + np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+            for i in range(n):
+                for j in range(n):
+                    a, b, c, d = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+                    # (u, w, axis) is right-handed: u x w points along +axis
+                    quad = [(a, b, c), (a, c, d)] if side else [(a, c, b), (a, d, c)]
+                    tris.extend(quad)
+    x = np.vstack(points)
+    _, first, inverse = np.unique(np.round(x, 12), axis=0, return_index=True, return_inverse=True)
+    return x[first], inverse.ravel()[np.asarray(tris)]
+
+
+def _two_boxes(lower, upper):
+    """Two box surfaces in one numbering, and every ordered pair of a triangle of one with a
+    triangle of the other."""
+    xa, ta = _box_surface(*lower)
+    xb, tb = _box_surface(*upper)
+    x0 = np.vstack((xa, xb))
+    tri = np.vstack((ta, tb + xa.shape[0])).astype(np.int64)
+    i, j = np.meshgrid(np.arange(ta.shape[0]), ta.shape[0] + np.arange(tb.shape[0]))
+    pairs = (np.concatenate((i.ravel(), j.ravel())), np.concatenate((j.ravel(), i.ravel())))
+    return x0, tri, pairs, xa.shape[0]
+
+
+def test_box_surface_is_closed_and_outward():
+    """The test's box surface: every edge in two triangles, the enclosed volume the box's."""
+    x, tri = _box_surface((0.0, 0.0, 0.0), (1.0, 4.0, 0.5))
+    edges = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
+    assert (np.unique(edges, axis=0, return_counts=True)[1] == 2).all()
+    p = x[tri]
+    volume = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0
+    assert np.isclose(volume, 2.0)
+
+
+def test_an_edge_sliding_off_a_body_through_its_side_face_is_free():
+    """A box lying on another, its lower edge 0.05 inside the lower box's side face and 0.02
+    under its top face, slides 0.3 sideways off it: that edge's vertices (their normals at 45
+    degrees between their faces, so facing the way the side face does) leave through the
+    side face while in contact with the top face, which faces them and is not the other side
+    of a layer: not capped. With every triangle a body of its own (no other face to be in
+    contact with: the rule before) the side face caps them (kind 2)."""
+    x0, tri, pairs, n_lower = _two_boxes(((0.0, 0.0, 0.0), (1.0, 4.0, 1.0)),
+                                         ((0.05, 1.0, 0.98), (1.05, 3.0, 1.98)))  # fmt: skip
+    x1 = x0.copy()
+    x1[n_lower:, 0] -= 0.3
+    best, capped, kind, v, t = _sweep(x0, x1, tri, entry=0.1, pairs=pairs)
+    assert best == 1.0 and capped == 0, (best, capped, kind)
+    alone = triangle_bodies(tri, np.arange(tri.shape[0]))
+    best, capped, kind, v, t = _sweep(x0, x1, tri, entry=0.1, pairs=pairs, bodies=alone)
+    assert kind == 2 and best < 1.0 and np.allclose(x0[v, [0, 2]], (0.05, 0.98)), (kind, v)
+    assert np.isclose(x0[tri[t], 0], 0.0).all()
+
+
+def test_an_edge_through_a_thin_layer_is_held():
+    """A box whose lower face went through a plate's top face (0.25 thick) to 0.1 over its
+    bottom face moves on down by 0.3: its vertices, the lower edges' too (their normals at 45
+    degrees), are capped at the bottom face (kind 2): the only face facing them within reach,
+    the top face, is the layer's other side."""
+    x0, tri, pairs, n_lower = _two_boxes(((0.0, 0.0, 0.0), (4.0, 4.0, 0.25)),
+                                         ((1.0, 1.0, 0.1), (3.0, 3.0, 1.1)))  # fmt: skip
+    x1 = x0.copy()
+    x1[n_lower:, 2] -= 0.3
+    best, capped, kind, v, t = _sweep(x0, x1, tri, entry=0.1, pairs=pairs)
+    assert kind == 2 and np.isclose(x0[v, 2], 0.1) and np.isclose(x0[tri[t], 2], 0.0).all()
+    assert np.isclose(best, (0.1 - (EXIT_DEPTH + EXIT_MARGIN) * 0.1) / 0.3, atol=1e-9), best
+    assert capped >= 9, capped  # the lower face's nine vertices, each by a bottom triangle or more
+    # every bottom vertex of the upper box is held, the 8 on its edges as well as the middle
+    held = {int(v)}
+    for q in range(pairs[0].size):
+        one = (pairs[0][q : q + 1], pairs[1][q : q + 1])
+        out = _sweep(x0, x1, tri, entry=0.1, pairs=one)
+        if out[2] == 2:
+            held.add(int(out[3]))
+    assert len(held) == 9, sorted(held)

@@ -32,7 +32,7 @@ from fenics_matdepth._mpi import allgather_rows
 from fenics_matdepth.contact.surface import ContactSurface
 from fenics_matdepth.geometry.boxes import element_boxes
 from fenics_matdepth.geometry.bvh import AABBTree
-from fenics_matdepth.geometry.ccd import PASS_THROUGH, sweep_caps
+from fenics_matdepth.geometry.ccd import PASS_THROUGH, sweep_caps, triangle_bodies
 
 __all__ = [
     "ENTRY_FRACTION",
@@ -123,6 +123,9 @@ class ContinuousCollision:
         self.X = np.empty((nb, 3), dtype=FLOAT)
         self.X[self._gather_order] = allgather_rows(comm, surface.X[self._owned_rows])
         self._edges_and_owners()
+        # the triangles of each body, for the exit cap's contact test
+        body = surface.body_of_vertex[self.vertices[self.tri[:, 0]]] if nb else np.empty(0)
+        self._bodies = triangle_bodies(self.tri, body)
         edge_length = np.linalg.norm(
             self.X[self.tri[:, [1, 2, 0]]] - self.X[self.tri], axis=2
         ).mean(axis=1)
@@ -236,7 +239,7 @@ class ContinuousCollision:
             best, capped, kind, i, j = sweep_caps(
                 x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
                 self.edge_owner, self.entry if entry_scale == 1.0 else entry_scale * self.entry,
-                self._owned_tri[qa], qb, self.exits_active,
+                self._owned_tri[qa], qb, self.exits_active, self._bodies,
             )  # fmt: skip
             which = (int(kind), int(i), int(j))
         best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)
