@@ -285,7 +285,8 @@ def main() -> None:
     split = summary["time_split"]
     print(f"  time split: force + stiffness {100 * split['force_stiffness']:.0f} % (paper 63 %), "
           f"contact update {100 * split['contact_update']:.0f} % (paper 22 %), linear solve "
-          f"{100 * split['linear_solve']:.0f} % (paper 15 %)")  # fmt: skip
+          f"{100 * split['linear_solve']:.0f} % (paper 15 %) of "
+          f"{split.get('seconds', float('nan')):.1f} s, every solve")  # fmt: skip
     if args.degrees == 30.0 and args.steps == 10:
         print(f"  target: <= {TARGET_30_ITERATIONS} iterations, no step over "
               f"{TARGET_30_STEP_MAX}: {total} and {max(per_step, default=0)}")  # fmt: skip

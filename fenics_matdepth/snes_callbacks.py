@@ -511,4 +511,4 @@ class SNESCallbacks:
         self._ksp_start = time.perf_counter()
 
     def _ksp_finished(self, ksp, b, x) -> None:
-        self._watch.totals["linear_solve"] += time.perf_counter() - self._ksp_start
+        self._watch.add("linear_solve", time.perf_counter() - self._ksp_start)

@@ -38,10 +38,12 @@ TIMING_KEYS = (
 
 
 class _Stopwatch:
-    """Accumulates wall time per key: ``with watch("key"): ...``."""
+    """Accumulates wall time per key: ``with watch("key"): ...``; ``totals`` per solve (the
+    problem resets them), ``run_totals`` since it was made (never reset)."""
 
     def __init__(self):
         self.totals = dict.fromkeys(TIMING_KEYS, 0.0)
+        self.run_totals = dict.fromkeys(TIMING_KEYS, 0.0)
         self._key = ""
         self._start = 0.0
 
@@ -53,7 +55,12 @@ class _Stopwatch:
         self._start = time.perf_counter()
 
     def __exit__(self, *exc):
-        self.totals[self._key] += time.perf_counter() - self._start
+        self.add(self._key, time.perf_counter() - self._start)
+
+    def add(self, key: str, seconds: float) -> None:
+        """Count ``seconds`` under ``key`` (timed elsewhere, as between two callbacks)."""
+        self.totals[key] += seconds
+        self.run_totals[key] += seconds
 
 
 class SystemAssembler:
@@ -115,6 +122,13 @@ class SystemAssembler:
         #: the pairs that left kept in the Jacobian for one iteration
         #: (:class:`~fenics_matdepth.contact.active_set.LaggedPairs`), or None
         self.lagged_pairs = None
+
+    @property
+    def run_timings(self) -> dict[str, float]:
+        """Seconds per key of ``TIMING_KEYS`` over every solve since the problem was made:
+        failed attempts, and the solves an augmented Lagrangian repeats, included (the
+        problem's ``timings`` hold its last solve's)."""
+        return dict(self.watch.run_totals)
 
     def keep_left_pairs(self, keep: bool = True) -> None:
         """Add to each Jacobian the last one's Hessian of every contact pair that has left

@@ -1203,6 +1203,19 @@ def test_pattern_rebuilt_when_contact_appears(solver):
             # the split's parts, the collision detection's time among them
             assert set(step.timings) == set(system_assembler.TIMING_KEYS)
             assert 0.0 < sum(step.timings.values()) <= step.seconds, step
+        # the whole run's split: the steps' solves summed (no step was cut here), then a
+        # failed solve's added to it
+        run = problem.assembler.run_timings
+        assert all(step.cuts == 0 for step in steps)
+        for key in system_assembler.TIMING_KEYS:
+            assert np.isclose(run[key], sum(step.timings[key] for step in steps)), key
+        problem.snes.setTolerances(max_it=1)
+        set_load(2.0)
+        assert not problem.solve(raise_on_failure=False).converged
+        after = problem.assembler.run_timings
+        for key in system_assembler.TIMING_KEYS:
+            assert np.isclose(after[key], run[key] + problem.timings[key]), key
+        assert sum(after.values()) > sum(run.values())
     else:
         assert all(step.timings == {} for step in steps)
 
