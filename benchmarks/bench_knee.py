@@ -81,12 +81,15 @@ def parse(lines: list[str]) -> list[list[Attempt]]:
         m = ITERATION.match(line)
         if m:
             k, norm = int(m.group(1)), float(m.group(2))
+            if k == 0 and not after_linear_failure:
+                # a new solve (after a pressure update): the last one's final line was its
+                # converged state, from which no step was taken
+                solve_index += 1
+                current = None
             if current is not None:
                 current.residual_after = norm
                 attempts[-1].iterations.append(current)
                 current = None
-            if k == 0 and not after_linear_failure:
-                solve_index += 1
             after_linear_failure = False
             current = Iteration(norm, solve_index=solve_index)
             continue

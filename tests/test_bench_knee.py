@@ -1,4 +1,5 @@
-"""``benchmarks/bench_knee.py``'s command line: every ``--env`` setting reaches the demo."""
+"""``benchmarks/bench_knee.py``: every ``--env`` setting reaches the demo; the monitor lines
+parsed into the iterations the demo counts."""
 
 from __future__ import annotations
 
@@ -24,3 +25,46 @@ def test_repeated_env_flags_add_up(bench):
 def test_an_env_item_that_is_not_key_value_is_refused(bench, item):
     with pytest.raises(SystemExit, match="KEY=VALUE"):
         bench.demo_settings(["A=1", item])
+
+
+#: A step of the knee as monitored (its first 51 degrees in 17 steps, the step to 48 degrees): two
+#: Newton solves (a pressure update between them), each resumed once after GMRES failed on a
+#: kept factorisation; 8 Newton steps in all, as the demo's step line says.
+STEP_MONITOR = """\
+  0 SNES Function norm 3.857531404703e+03
+      Line search: Using full step: old obj 7.440274269134e+06 new obj 2.192997191838e+02
+  1 SNES Function norm 2.094276577646e+01
+      Line search: Using full step: old obj 1.787033980064e+03 new obj 1.784442501718e+03
+  2 SNES Function norm 9.251013445226e-01
+    Linear knee_ solve did not converge due to DIVERGED_ITS iterations 20
+  0 SNES Function norm 9.251013445226e-01
+      Line search: Using full step: old obj 1.784442501718e+03 new obj 1.784433840770e+03
+  1 SNES Function norm 5.032154523569e-02
+      Line search: Using full step: old obj 1.784433840770e+03 new obj 1.784433736049e+03
+  2 SNES Function norm 2.133893833748e-03
+  0 SNES Function norm 8.233531634926e+01
+      Line search: Using full step: old obj 1.819367219497e+03 new obj 1.799769493730e+03
+  1 SNES Function norm 8.656908660944e+00
+    Linear knee_ solve did not converge due to DIVERGED_ITS iterations 20
+  0 SNES Function norm 8.656908660944e+00
+      Line search: Using full step: old obj 1.799769493730e+03 new obj 1.799124925462e+03
+  1 SNES Function norm 6.424065294987e-01
+      Line search: Using full step: old obj 1.799124925462e+03 new obj 1.799120750349e+03
+  2 SNES Function norm 1.872427619707e-02
+      Line search: Using full step: old obj 1.799120750349e+03 new obj 1.799120745202e+03
+  3 SNES Function norm 1.847627153306e-04
+step  16  load 0.9412  newton  8 it  |r| 1.85e-04  cuts 0  active pairs 711
+"""
+
+
+def test_the_monitor_lines_count_the_steps_the_demo_counts(bench):
+    """One iteration per Newton step taken: not the line after which GMRES failed (the solve
+    goes on from there), nor a solve's converged state before a pressure update (counted once
+    too many per update before)."""
+    (attempts,) = bench.parse(STEP_MONITOR.splitlines())
+    (attempt,) = attempts
+    assert attempt.converged and attempt.linear_failures == 2
+    assert len(attempt.iterations) == 8
+    assert [it.solve_index for it in attempt.iterations] == [0] * 4 + [1] * 4
+    assert attempt.iterations[3].residual_after == 2.133893833748e-03
+    assert attempt.iterations[4].residual_before == 8.233531634926e01
