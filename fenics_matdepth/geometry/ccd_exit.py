@@ -70,12 +70,17 @@ BARY_SLACK = 1e-3
 
 @njit(inline="always")
 def blocks_at(x0, x1, t, xs):
+    """The (4, 3) block of a pair's points at time t of the step (``xs``, in place), from
+    their blocks ``x0`` and ``x1`` at times 0 and 1 (linear trajectories)."""
     for i in range(4):
         for k in range(3):
             xs[i, k] = x0[i, k] + t * (x1[i, k] - x0[i, k])
 
 
 def pair_blocks(first: np.ndarray, second: np.ndarray, n_first: int) -> np.ndarray:
+    """The (n, 4, 3) blocks of n primitive pairs: ``first`` (n, n_first, 3) points of the first
+    primitive (a vertex, 1; an edge, 2), then ``second``'s of the other (a single pair may
+    drop the leading axis)."""
     first = np.asarray(first, dtype=FLOAT).reshape(-1, n_first, 3)
     second = np.asarray(second, dtype=FLOAT).reshape(-1, 4 - n_first, 3)
     if first.shape[0] != second.shape[0]:
@@ -277,6 +282,15 @@ def _unit_normal(x, a, b, c, n):
     return True
 
 
+@njit(inline="always")
+def _triangle_at(x0, x1, t, tri, f, xt):
+    """Rows 1-3 of ``xt``: the vertices of triangle f at time t of the step."""
+    for r in range(3):
+        w = tri[f, r]
+        for k in range(3):
+            xt[r + 1, k] = x0[w, k] + t * (x1[w, k] - x0[w, k])
+
+
 @njit(cache=True)
 def exit_exempt(x0, x1, t, nv, v, a, e, tri, tri_body, body_start, body_tris, xt):
     """Whether vertex v, at the time t at which the exit cap would stop it behind triangle a,
@@ -288,9 +302,7 @@ def exit_exempt(x0, x1, t, nv, v, a, e, tri, tri_body, body_start, body_tris, xt
         xt[0, k] = x0[v, k] + t * (x1[v, k] - x0[v, k])
     na = np.empty(3, dtype=x0.dtype)
     n = np.empty(3, dtype=x0.dtype)
-    for k in range(3):
-        for r in range(3):
-            xt[r + 1, k] = x0[tri[a, r], k] + t * (x1[tri[a, r], k] - x0[tri[a, r], k])
+    _triangle_at(x0, x1, t, tri, a, xt)
     if not _unit_normal(xt, 1, 2, 3, na):
         return False
     body = tri_body[a]
@@ -298,9 +310,7 @@ def exit_exempt(x0, x1, t, nv, v, a, e, tri, tri_body, body_start, body_tris, xt
         f = body_tris[i]
         if f == a or tri[f, 0] == v or tri[f, 1] == v or tri[f, 2] == v:
             continue
-        for k in range(3):
-            for r in range(3):
-                xt[r + 1, k] = x0[tri[f, r], k] + t * (x1[tri[f, r], k] - x0[tri[f, r], k])
+        _triangle_at(x0, x1, t, tri, f, xt)
         if not _unit_normal(xt, 1, 2, 3, n):
             continue
         if not (nv[v, 0] * n[0] + nv[v, 1] * n[1] + nv[v, 2] * n[2] < -ALIGNED):
