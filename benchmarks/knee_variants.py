@@ -14,20 +14,8 @@
   ``ESCAPE_TRAVEL`` median boundary edges at the vertex that moves most, to the side of lower
   energy, and solved again at the same load; the step keeps the new state if that solve
   converges (one ``ESCAPE`` line each).
-- ``--relax``: nonlinear elimination of a concentrated residual. Before each Newton step after
-  a solve's first, where at most ``RELAX_VERTICES`` vertices hold ``RELAX_SHARE`` of
-  ``|F|^2``, the equilibrium of those vertices and their neighbours (the cells round them) is
-  solved with every other vertex held, by up to ``RELAX_ITERATIONS`` Newton iterations on
-  that patch (its block of the Jacobian, dense, and a backtracking search on the energy); the
-  global step goes on from the relaxed state (:class:`LocalRelaxation`, one ``RELAX`` line per
-  use). ``--relax`` (``whole``): each local iteration assembles the whole residual, Jacobian
-  and energy. ``--relax patch``: over the patch alone, the bulk over the cells touching its
-  vertices and the contact over the candidate pairs holding one of them
-  (``patch_assembly.py``); then the whole residual once, at the relaxed state.
-  ``--relax-iterations``, ``--relax-vertices``, ``--relax-share``: ``RELAX_ITERATIONS``,
-  ``RELAX_VERTICES`` and ``RELAX_SHARE`` instead of the defaults. ``--relax-det-floor f``
-  (``patch``): a local trial state whose lowest det F on the patch is at most f times the
-  patch's lowest at its start is refused (0, the default: only inverted cells).
+- The local relaxation (``--relax patch`` here until it moved into the library) is
+  ``fm.LocalRelaxation``: the demo's ``MATDEPTH_KNEE_RELAX=1`` (``bench_knee.py --env``).
 
 Serial only. The demo's output goes to stdout with ``bench_knee.py``'s monitors on; its
 figures come from ``bench_knee.py --from-log``::
@@ -44,7 +32,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-import traceback
 
 import numpy as np
 
@@ -74,16 +61,6 @@ SLOW_RATE = 0.5
 ESCAPE_TRAVEL = 0.25
 #: ``--escape-saddles``: eigenpairs computed nearest the shift below the lowest eigenvalue
 ESCAPE_PAIRS = 2
-#: ``--relax``: the residual counts as concentrated where at most RELAX_VERTICES vertices hold
-#: RELAX_SHARE of its square
-RELAX_SHARE = 0.8
-RELAX_VERTICES = 12
-#: ``--relax``: Newton iterations of one patch's solve (it stops sooner once the patch's
-#: residual fell below RELAX_RTOL of its start)
-RELAX_ITERATIONS = 6
-RELAX_RTOL = 0.05
-#: ``--relax``: no relaxation once the residual norm is below this (force)
-RELAX_MIN_NORM = 0.1
 
 
 def element_matrices(energy: ufl.Form, u: dolfinx.fem.Function) -> tuple:
@@ -232,195 +209,6 @@ class DefiniteHessians:
         snes.setUpdate(update)
 
 
-class WholeSystem:
-    """A patch's energy, gradient and Hessian from the whole problem's (each evaluation
-    assembles everything; the energy is the whole energy): the gradient is the residual's rows
-    at the patch's dofs, and the residual is left in ``F``."""
-
-    def __init__(self, relaxation: LocalRelaxation, dofs: np.ndarray, F: PETSc.Vec):
-        self.relaxation, self.dofs, self.F = relaxation, dofs, F
-        self.rows = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
-
-    def energy(self, x: PETSc.Vec) -> float:
-        return self.relaxation.energy(x)
-
-    def gradient(self, x: PETSc.Vec) -> np.ndarray:
-        self.relaxation.residual(x, self.F)
-        return self.F.getValues(self.dofs)
-
-    def hessian(self, x: PETSc.Vec) -> np.ndarray:
-        block = self.relaxation.jacobian(x).createSubMatrix(self.rows, self.rows)
-        K = block.convert("dense").getDenseArray().copy()
-        block.destroy()
-        return K
-
-    def destroy(self) -> None:
-        self.rows.destroy()
-
-
-class LocalRelaxation:
-    """``--relax`` (see the module docstring): the equilibrium of the vertices holding most of
-    the residual, and of their neighbours, with every other vertex held. Serial.
-
-    Args:
-        residual: ``residual(x, b)`` writes ``F(x)`` into ``b``.
-        jacobian: ``jacobian(x)``, the Jacobian at ``x`` (a PETSc matrix; rows and columns of
-            held dofs are not read).
-        energy: ``energy(x)``, the energy at ``x`` (``inf`` where inadmissible).
-        cells: each cell's vertices, ``(n_cells, 4)``; dof ``3 v + i`` is vertex v's i-th.
-        fixed: which dofs are held (Dirichlet), a boolean array.
-        restricted: ``restricted(dofs)``, the patch's model assembled over the patch alone
-            (``patch_assembly.PatchAssembly.model``: ``energy``, ``gradient`` and ``hessian``
-            at a state, ``destroy``), or None: the whole problem's (:class:`WholeSystem`).
-    """
-
-    def __init__(self, residual, jacobian, energy, cells: np.ndarray, fixed: np.ndarray,
-                 share: float = RELAX_SHARE, vertices: int = RELAX_VERTICES,
-                 iterations: int = RELAX_ITERATIONS, restricted=None):  # fmt: skip
-        self.residual, self.jacobian, self.energy = residual, jacobian, energy
-        self.restricted = restricted
-        self.cells, self.fixed = cells, fixed
-        self.share, self.vertices, self.iterations = share, vertices, iterations
-        self.uses = self.local_iterations = 0
-        self.seconds = 0.0  # in relax (the relaxed state's whole residual included)
-
-    def patch(self, F: PETSc.Vec) -> np.ndarray | None:
-        """The free dofs of the patch round the vertices holding ``share`` of ``|F|^2``, or
-        None where more than ``vertices`` vertices are needed for it."""
-        r2 = (F.getArray(readonly=True).reshape(-1, 3) ** 2).sum(axis=1)
-        order = np.argsort(r2)[::-1]
-        needed = int(np.searchsorted(np.cumsum(r2[order]), self.share * r2.sum())) + 1
-        if needed > self.vertices:
-            return None
-        around = np.unique(self.cells[np.isin(self.cells, order[:needed]).any(axis=1)])
-        dofs = (3 * around[:, None] + np.arange(3)).ravel()
-        return dofs[~self.fixed[dofs]].astype(PETSc.IntType)
-
-    def relax(self, x: PETSc.Vec, F: PETSc.Vec) -> tuple | None:
-        """Relax ``x`` in place from its residual ``F``, which then holds the relaxed
-        iterate's; returns (the patch's dofs, iterations, the patch's residual norm before and
-        after), or None (nothing changed) where the residual is not concentrated."""
-        dofs = self.patch(F)
-        if dofs is None or dofs.size == 0:
-            return None
-        tic = time.perf_counter()
-        whole = self.restricted is None
-        model = WholeSystem(self, dofs, F) if whole else self.restricted(dofs)
-        trial = x.duplicate()
-        energy = model.energy(x)
-        # the whole problem's gradient at x is F's rows; a restricted one is the energy's alone
-        # (without the lifting of Dirichlet values not yet reached)
-        f = F.getValues(dofs) if whole else model.gradient(x)
-        start = np.linalg.norm(f)
-        iterations, current = 0, True  # current: f is the gradient at x
-        try:
-            for iterations in range(1, self.iterations + 1):
-                if not current:
-                    f = model.gradient(x)
-                    current = True
-                if np.linalg.norm(f) < RELAX_RTOL * start:
-                    iterations -= 1
-                    break
-                K = model.hessian(x)
-                step = np.linalg.lstsq(K, f, rcond=None)[0]
-                slope = -f @ step
-                if not slope < 0.0:  # the patch's Newton step climbs: a gradient step instead
-                    step = f / np.abs(np.diag(K)).max()
-                    slope = -f @ step
-                moved = False
-                for length in 0.5 ** np.arange(8):
-                    x.copy(trial)
-                    trial.setValues(dofs, x.getValues(dofs) - length * step)
-                    trial.assemble()
-                    value = model.energy(trial)
-                    if value <= energy + 1e-4 * length * slope:
-                        moved = True
-                        break
-                if not moved:
-                    break
-                trial.copy(x)
-                energy, current = value, False
-            if not (whole and current):  # WholeSystem.gradient leaves the residual in F
-                self.residual(x, F)
-            norm = np.linalg.norm(F.getValues(dofs))
-        finally:
-            trial.destroy()
-            model.destroy()
-        self.uses += 1
-        self.local_iterations += iterations
-        self.seconds += time.perf_counter() - tic
-        return dofs, iterations, start, norm
-
-    def install(self, problem) -> None:
-        """Relax before each Newton step of ``problem`` (a ContactProblem) after a solve's
-        first, chained before the problem's own update callback; the SNES's residual (updated by
-        :meth:`relax`) and its norm are then those of the relaxed iterate."""
-        snes = problem.snes
-        then, args, kwargs = snes.getUpdate()
-
-        def update(s: PETSc.SNES, iteration: int) -> None:
-            F = s.getFunction()[0]
-            norm = s.getFunctionNorm()
-            if iteration > 0 and np.isfinite(norm) and norm > RELAX_MIN_NORM:
-                x = s.getSolution()
-                try:
-                    done = self.relax(x, F)
-                except Exception:
-                    # the SNES turns it into a failed solve, which the load steps cut silently
-                    traceback.print_exc()
-                    raise
-                if done is not None:
-                    # the problem's residual and energy kept for the last trial state are stale
-                    problem._trial_valid, problem._energy_value = False, np.nan
-                    s.setFunctionNorm(F.norm())
-                    dofs, iterations, before, after = done
-                    print(
-                        f"RELAX {dofs.size} dofs, {iterations} it, patch |F| {before:.3g} -> "
-                        f"{after:.3g}, |F| {norm:.3g} -> {s.getFunctionNorm():.3g}",
-                        flush=True,
-                    )
-            then(s, iteration, *args, **kwargs)
-
-        snes.setUpdate(update)
-
-
-def relaxation_of(
-    problem, cells: np.ndarray, energy: ufl.Form | None = None, det_floor: float = 0.0
-) -> LocalRelaxation:
-    """``--relax``'s :class:`LocalRelaxation` on a ContactProblem's assembler; given the bulk
-    ``energy`` (UFL), each patch is assembled over itself (``--relax patch``:
-    :class:`patch_assembly.PatchAssembly`, its ``det_floor``), the dofs it holds held on
-    every patch."""
-    assembler = problem.assembler
-
-    def residual(x, b):
-        assembler.set_state(x)
-        assembler.residual(x, b)
-
-    def jacobian(x):
-        assembler.set_state(x)
-        assembler.rebuild_matrix_if_needed(
-            lambda A: problem.snes.setJacobian(problem._jacobian, A, A)
-        )
-        assembler.jacobian(assembler.matrix)
-        return assembler.matrix
-
-    def value(x):
-        assembler.set_state(x)
-        return assembler.total_energy() if assembler.min_det_F() > 0.0 else np.inf
-
-    fixed = dirichlet_mask(problem.u.function_space, assembler.bcs)
-    restricted = None
-    if energy is not None:
-        from patch_assembly import PatchAssembly
-
-        patches = PatchAssembly(energy, problem.u, assembler.contact)
-        patches.det_floor = det_floor
-        fixed[patches.held] = True
-        restricted = patches.model
-    return LocalRelaxation(residual, jacobian, value, cells, fixed, restricted=restricted)
-
-
 def lowest_eigenvalue_bracket(A: PETSc.Mat) -> float:
     """A shift ``sigma`` just below the lowest eigenvalue of the symmetric ``A``, which has a
     negative one: no eigenvalue below ``sigma``, one or more below ``0.9 sigma`` (the inertia
@@ -538,11 +326,6 @@ def main() -> None:
     parser.add_argument("--hessian", choices=HESSIANS, default="exact")
     parser.add_argument("--snes", choices=("newtonls", "newtontr"), default="newtonls")
     parser.add_argument("--escape-saddles", action="store_true")
-    parser.add_argument("--relax", nargs="?", const="whole", choices=("whole", "patch"))
-    parser.add_argument("--relax-iterations", type=int, default=RELAX_ITERATIONS)
-    parser.add_argument("--relax-vertices", type=int, default=RELAX_VERTICES)
-    parser.add_argument("--relax-share", type=float, default=RELAX_SHARE)
-    parser.add_argument("--relax-det-floor", type=float, default=0.0)
     parser.add_argument("--degrees", type=float, default=150.0)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--output", required=True, help="the demo's output folder")
@@ -556,7 +339,6 @@ def main() -> None:
 
     installed: list[DefiniteHessians] = []
     escapes: list[SaddleEscape] = []
-    relaxations: list[LocalRelaxation] = []
 
     def install(problem, demo: dict) -> None:
         if args.snes == "newtontr":
@@ -575,15 +357,6 @@ def main() -> None:
             escape = SaddleEscape(solver, problem, ESCAPE_TRAVEL * demo["h_boundary"])
             solver.solve = escape.solve
             escapes.append(escape)
-        if args.relax:
-            cells = np.asarray(problem.u.function_space.dofmap.list).reshape(-1, 4)
-            energy = demo["energy"] if args.relax == "patch" else None
-            relaxation = relaxation_of(problem, cells, energy, args.relax_det_floor)
-            relaxation.iterations = args.relax_iterations
-            relaxation.vertices, relaxation.share = args.relax_vertices, args.relax_share
-
-            relaxation.install(problem)
-            relaxations.append(relaxation)
 
     try:
         run_knee_with(install)
@@ -599,11 +372,6 @@ def main() -> None:
             print(
                 f"saddles: {escape.saddles} converged steps, {escape.escaped} left to a "
                 f"converged state in {escape.iterations} Newton iterations"
-            )
-        for relaxation in relaxations:
-            print(
-                f"local relaxation: {relaxation.uses} patches relaxed in "
-                f"{relaxation.local_iterations} local Newton iterations, {relaxation.seconds:.1f} s"
             )
 
 

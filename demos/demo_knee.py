@@ -77,6 +77,7 @@
 # Jacobian (active-set damping; below),
 # `MATDEPTH_KNEE_STEP_LIMIT` the longest move of a vertex coordinate in one Newton step, in
 # median boundary edges (default 2; 0: no limit; below),
+# `MATDEPTH_KNEE_RELAX=1` relaxes a concentrated residual before each Newton step (serial; below),
 # `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
 # (below; the contact fields of every step go to `knee_contact.xdmf` either way);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
@@ -146,6 +147,7 @@ al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
 al_max_it = int(os.environ.get("MATDEPTH_KNEE_AL_MAX_IT", 2 * max_newton))
 keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 step_limit = float(os.environ.get("MATDEPTH_KNEE_STEP_LIMIT", 2.0))
+relax = os.environ.get("MATDEPTH_KNEE_RELAX", "0") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -489,6 +491,13 @@ if pseudo_transient > 0.0:
 # 150 deg in five runs, against 1,153 to 1,384 without it (docs/measurements.md)
 if step_limit > 0.0:
     problem.step_limit = step_limit * stats["median_edge"]
+# MATDEPTH_KNEE_RELAX=1: before each Newton step, where a few vertices hold most of the
+# residual, their patch is brought to equilibrium with the rest of the leg held
+# (fm.LocalRelaxation; serial only, off on more processes; docs/solvers.md)
+if relax and comm.size == 1 and knee_friction is None:
+    problem.relaxation = fm.LocalRelaxation(energy)
+elif relax:
+    report("local relaxation: off (it runs serially and without friction only)")
 # -
 
 # ### The augmented Lagrangian
@@ -1020,6 +1029,12 @@ report(
     f"{100 * split['linear_solve']:.0f} % (paper 15 %) of {measured:.1f} s, every solve "
     f"({converged_part:.1f} s in the converged steps' last solves)"
 )
+if problem.relaxation is not None:
+    r = problem.relaxation
+    report(
+        f"local relaxation: {r.uses} patches relaxed in {r.local_iterations} local Newton "
+        f"iterations, {r.seconds:.1f} s"
+    )
 # -
 
 # ### Figures
@@ -1215,6 +1230,13 @@ summary = {
     "fibre_toe": fibre_toe,
     "keep_left_pairs": keep_left,
     "step_limit_edges": step_limit,
+    "relaxation": None
+    if problem.relaxation is None
+    else {
+        "patches": problem.relaxation.uses,
+        "local_iterations": problem.relaxation.local_iterations,
+        "seconds": problem.relaxation.seconds,
+    },
     "target_iterations": target_iterations,
     "stop_iterations": stop_iterations,
     "min_scale": min_scale,

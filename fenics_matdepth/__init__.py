@@ -42,6 +42,7 @@ from fenics_matdepth.free_bodies import FreeBody, FreeBodyDamping, find_free_bod
 from fenics_matdepth.kinematics import RigidRotation, rotation_displacement, rotation_matrix
 from fenics_matdepth.problems import ContactProblem, NonlinearContactProblem, rigid_body_modes
 from fenics_matdepth.pseudo_transient import PseudoTransient
+from fenics_matdepth.relaxation import LocalRelaxation
 from fenics_matdepth.results import LoadStep, Solvable, SolveResult, StopRequested, TimeStep
 from fenics_matdepth.step_control import StepControl
 from fenics_matdepth.stepping import solve_load_steps
@@ -60,6 +61,7 @@ __all__ = [
     "FreeBody",
     "FreeBodyDamping",
     "LoadStep",
+    "LocalRelaxation",
     "Newmark",
     "NonlinearContactProblem",
     "PenaltyContinuation",

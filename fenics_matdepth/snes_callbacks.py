@@ -135,6 +135,44 @@ class SNESCallbacks:
     #: (matrix, PC type, its shifted copy, the copy's KSP) of _shift_solver, or None
     _shift_kept = None
 
+    _relaxation = None
+
+    @property
+    def relaxation(self):
+        """None (the default), or a :class:`~fenics_matdepth.LocalRelaxation` that relaxes a
+        concentrated residual before each Newton step after a solve's first (serial). Setting
+        it prepares the relaxation for this problem (compiles its patch forms).
+
+        Raises:
+            NotImplementedError: on more than one process, with friction, or for an energy
+                a patch cannot assemble (:meth:`LocalRelaxation.bind`).
+        """
+        return self._relaxation
+
+    @relaxation.setter
+    def relaxation(self, value) -> None:
+        if value is not None:
+            value.bind(self)
+        self._relaxation = value
+
+    def _relax(self, snes: PETSc.SNES) -> bool:
+        """The local relaxation before a Newton step, once the Dirichlet dofs hold their
+        values (before, the residual's free rows hold the lifting ``A (g - x)`` too, which a
+        patch's energy does not see): where it moved the iterate, SNES's residual and its norm
+        are the relaxed iterate's, and the residual and energy kept for the last trial state
+        are stale. Whether it moved the iterate."""
+        if not self._relaxation.wanted(snes.getFunctionNorm()):
+            return False
+        x = snes.getSolution()
+        if self.assembler.bc_offset(x) > 1e-12 * max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0):
+            return False
+        if self._relaxation.relax(x, snes.getFunction()[0]) is None:
+            return False
+        self._trial_valid, self._energy_value = False, np.nan
+        self._resumed_unchanged = False
+        snes.setFunctionNorm(snes.getFunction()[0].norm())
+        return True
+
     @property
     def step_limit(self) -> float | None:
         """None (the default), or the longest move of one degree of freedom in a Newton step
@@ -433,6 +471,8 @@ class SNESCallbacks:
                 offset = 0.0
                 self._last_norm = snes.getFunctionNorm()
             self._bcs_met = offset <= 1e-12 * scale
+        if self._relaxation is not None and iteration > 0 and self._relax(snes):
+            self._last_norm = snes.getFunctionNorm()
         self._set_state(x)
 
         def register(A: PETSc.Mat) -> None:

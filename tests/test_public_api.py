@@ -28,6 +28,7 @@ PUBLIC = {
     # stepping
     "solve_load_steps", "StepControl", "LoadStep", "StopRequested", "solve_time_steps", "TimeStep",
     "Newmark", "BackwardEuler", "Checkpoint", "PseudoTransient",
+    "LocalRelaxation",
     # wrappers over a problem
     "AugmentedLagrangian", "UzawaUpdate", "RigidModeDamping", "damping_energy",
     "PenaltyContinuation", "ContinuationStage",

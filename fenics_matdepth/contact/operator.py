@@ -109,11 +109,9 @@ class ContactOperator(FrictionMixin):
         self.u = u
         self.integration = integration
         self.comm: MPI.Comm = mesh.comm
-        # stacklevel of the deficiency warning: the surface's set-up, its __init__, this
+        # the deficiency warning's stacklevel (4): the surface's set-up and __init__, this
         # __init__, the compile-notice wrapper
-        self.surface = ContactSurface(
-            u, depth, integration, margin, split_deficient, warn_stacklevel=4
-        )
+        self.surface = ContactSurface(u, depth, integration, margin, split_deficient, 4)
         s = self.surface
         self.num_vertices = s.num_vertices
         self.num_bodies, self.body_of_vertex = s.num_bodies, s.body_of_vertex
@@ -293,9 +291,8 @@ class ContactOperator(FrictionMixin):
 
     def _intersecting_pairs(self) -> np.ndarray:
         """Indices of the candidate pairs whose intersection is not empty, kept until the next
-        :meth:`update` moves the bodies: the energy (line search), gradient (residual) and
-        Hessian (Jacobian) passes at one state share the test (24 ms of 188k candidates on the
-        40k-tetrahedron press)."""
+        :meth:`update`: the energy, gradient and Hessian passes at one state share the test
+        (24 ms of 188k candidates on the 40k-tetrahedron press)."""
         if "intersecting" not in self._cache:
             self._cache["intersecting"] = self.pair_search.intersecting(self.surface)
         return self._cache["intersecting"]
@@ -497,9 +494,11 @@ class ContactOperator(FrictionMixin):
         """Nodal contact pressures (global vertex numbering, pressure units), or ``None``."""
         return self._pressure
 
+    #: (read-only) ``w`` (L) of the quadratic pressure term, or 0 (:meth:`set_pressure`)
+    pressure_width = property(lambda self: self._pressure_width)
+
     def set_pressure(self, pressure: np.ndarray | None, width: float = 0.0) -> None:
-        """Set the nodal contact pressures of the augmented Lagrangian (or ``None``: plain
-        penalty).
+        """Set the augmented Lagrangian's nodal contact pressures (``None``: plain penalty).
 
         With ``width = 0`` the energy becomes ``sum over pairs of int_{T cap K} (p g +
         (eps/2) g^2) dA``, ``p`` interpolated linearly on each penetrating boundary triangle

@@ -1,6 +1,6 @@
 """The energy, gradient and Hessian of a contact problem on a patch of vertices, the others
-held, assembled over the patch's cells and contact pairs only (``knee_variants.py --relax
-patch``). Serial.
+held, assembled over the patch's cells and contact pairs only (for
+:class:`~fenics_matdepth.relaxation.LocalRelaxation`). Serial.
 
 :class:`PatchAssembly` compiles the bulk energy and its first two derivatives once; for each
 patch it makes DOLFINx forms of the same compiled code whose cell integrals run over the cells
@@ -13,8 +13,8 @@ that inverts a patch cell (or, with ``det_floor``, brings its det F that close t
 infinite energy.
 
 Left out: friction; pairs that a local step brings into contact from further apart; and the
-dofs of vertices on a facet of an exterior-facet integral (the knee's spring on the
-quadriceps' cut), which are held.
+dofs of vertices on a facet of an exterior-facet integral (a spring or a dead load on a
+boundary), which are held.
 """
 
 from __future__ import annotations
@@ -30,26 +30,43 @@ import ufl
 from fenics_matdepth.contact import evaluation, pairs
 from fenics_matdepth.geometry.intersect import near_pairs
 
+__all__ = ["PatchAssembly", "PatchModel"]
+
 #: the contact pairs of a patch: the candidates holding a patch vertex whose triangle and
 #: tetrahedron lie within this many mean boundary edges of each other
 NEAR_EDGES = 0.1
+
+
+def _subdomain_ids(ident) -> list[int] | None:
+    """The integer ids of a UFL integral's subdomain (None: everywhere)."""
+    if ident in ("everywhere", "otherwise"):
+        return None
+    return [int(i) for i in ident] if isinstance(ident, tuple) else [int(ident)]
 
 
 class PatchAssembly:
     """Patch models (:meth:`model`) of a contact problem whose bulk energy is ``energy``.
 
     Args:
-        energy: the bulk energy (UFL) of ``u``; its cell integrals' subdomains are cell tags
-            or everywhere.
+        energy: the bulk energy (UFL) of ``u``, in N mm (or the unit of the problem's
+            residual times the displacement's); its integrals are cell integrals (over cell
+            tags or everywhere) and exterior-facet integrals, whose vertices are held.
         u: the displacement (P1 on tetrahedra).
         contact: the contact operator of ``u`` (its state is the one at :meth:`model`).
+
+    Raises:
+        NotImplementedError: on more than one process, or for another kind of integral
+            (interior facets, vertices).
     """
 
     def __init__(self, energy: ufl.Form, u: dolfinx.fem.Function, contact):
         V = u.function_space
         mesh = V.mesh
         if mesh.comm.size > 1:
-            raise NotImplementedError("PatchAssembly runs serially only")
+            raise NotImplementedError(
+                f"a patch is assembled on one process only, and this mesh is distributed "
+                f"over {mesh.comm.size}: leave the local relaxation off in parallel"
+            )
         self.u, self.V, self.mesh, self.contact = u, V, mesh, contact
         #: a patch's trial states whose lowest det F is at most this fraction of the patch's
         #: lowest at its start are refused (0: only inverted cells)
@@ -64,25 +81,27 @@ class PatchAssembly:
         self.X = V.tabulate_dof_coordinates()
         p = self.X[self.cells]
         self._volumes = np.linalg.det(p[:, 1:] - p[:, :1])  # each cell's, at rest
-        # the cells of each cell integral's subdomain (None: every cell)
+        # the cells of each cell integral's subdomain id (-1, everywhere: None)
         self._cell_sets: dict[int, np.ndarray | None] = {}
         held = []
         for itg in energy.integrals():
-            kind, ident, data = itg.integral_type(), itg.subdomain_id(), itg.subdomain_data()
+            kind, data = itg.integral_type(), itg.subdomain_data()
+            ids = _subdomain_ids(itg.subdomain_id())
             if kind == "cell":
-                everywhere = ident in ("everywhere", "otherwise")
-                self._cell_sets[-1 if everywhere else int(ident)] = (
-                    None if everywhere else data.find(int(ident))
-                )
+                for ident in [-1] if ids is None else ids:
+                    self._cell_sets[ident] = None if ids is None else data.find(ident)
             elif kind == "exterior_facet":
                 facets = (
                     dolfinx.mesh.exterior_facet_indices(mesh.topology)
-                    if ident in ("everywhere", "otherwise")
-                    else data.find(int(ident))
+                    if ids is None
+                    else np.concatenate([data.find(i) for i in ids])
                 )
                 held.append(dolfinx.fem.locate_dofs_topological(V, mesh.topology.dim - 1, facets))
             else:
-                raise NotImplementedError(f"{kind} integrals on a patch")
+                raise NotImplementedError(
+                    f"the energy has {kind} integrals, which a patch cannot assemble over its "
+                    "cells: leave the local relaxation off for this problem"
+                )
         blocks = np.unique(np.concatenate(held)) if held else np.empty(0, np.int32)
         #: dofs held on every patch (on a facet of an exterior-facet integral)
         self.held = (3 * blocks[:, None] + np.arange(3)).ravel()
@@ -136,7 +155,7 @@ class PatchModel:
         if contact.integration == "area":
             # of the candidates (boxes within the search's skin), those within NEAR_EDGES mean
             # boundary edges (the others cost most of a patch's time: 0.3 s a patch at 0.5
-            # edges, all summed); a local step that closes a wider gap misses that pair
+            # edges on the knee); a local step that closes a wider gap misses that pair
             pa, pk = near_pairs(s.x, s.tri, s.tets, pa, pk, NEAR_EDGES * s.mean_edge)
         self.pair_a, self.pair_k = pa, pk
         # the pairs' dofs in the patch's numbering (-1: held)
@@ -160,7 +179,7 @@ class PatchModel:
         )  # fmt: skip
         return evaluation.pair_arrays(
             current, contact.integration, self.pair_a, self.pair_k, contact.penalty,
-            contact.pressure, contact._pressure_width, want_grad, want_hess,
+            contact.pressure, contact.pressure_width, want_grad, want_hess,
         )  # fmt: skip
 
     def energy(self, x: PETSc.Vec) -> float:
@@ -204,6 +223,3 @@ class PatchModel:
         cols = np.broadcast_to(d[:, None, :], hess.shape)[keep]
         np.add.at(K, (rows, cols), hess[keep])
         return K
-
-    def destroy(self) -> None:
-        """Nothing to release (the forms and the matrix are Python objects)."""
