@@ -77,7 +77,8 @@
 # Jacobian (active-set damping; below),
 # `MATDEPTH_KNEE_STEP_LIMIT` the longest move of a vertex coordinate in one Newton step, in
 # median boundary edges (default 2; 0: no limit; below),
-# `MATDEPTH_KNEE_RELAX=1` relaxes a concentrated residual before each Newton step (serial; below),
+# `MATDEPTH_KNEE_RELAX=0` turns off the relaxation of a concentrated residual before each Newton
+# step (serial; below),
 # `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
 # (below; the contact fields of every step go to `knee_contact.xdmf` either way);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
@@ -147,7 +148,7 @@ al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
 al_max_it = int(os.environ.get("MATDEPTH_KNEE_AL_MAX_IT", 2 * max_newton))
 keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 step_limit = float(os.environ.get("MATDEPTH_KNEE_STEP_LIMIT", 2.0))
-relax = os.environ.get("MATDEPTH_KNEE_RELAX", "0") not in ("", "0")
+relax = os.environ.get("MATDEPTH_KNEE_RELAX", "1") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
     here = Path(__file__).resolve().parent
@@ -491,9 +492,12 @@ if pseudo_transient > 0.0:
 # 150 deg in five runs, against 1,153 to 1,384 without it (docs/measurements.md)
 if step_limit > 0.0:
     problem.step_limit = step_limit * stats["median_edge"]
-# MATDEPTH_KNEE_RELAX=1: before each Newton step, where a few vertices hold most of the
-# residual, their patch is brought to equilibrium with the rest of the leg held
-# (fm.LocalRelaxation; serial only, off on more processes; docs/solvers.md)
+# Before each Newton step, where a few vertices hold most of the residual, their patch is
+# brought to equilibrium with the rest of the leg held (fm.LocalRelaxation; serial only, off on
+# more processes; MATDEPTH_KNEE_RELAX=0 turns it off). Past 100 deg the residual sits on two or
+# three vertices behind the knee, and the Newton step answers their force by moving a soft
+# region elsewhere; relaxed, 150 deg took 613 to 706 Newton iterations on three paths of this
+# machine against 884 to 1,136 without (docs/measurements.md)
 if relax and comm.size == 1 and knee_friction is None:
     problem.relaxation = fm.LocalRelaxation(energy)
 elif relax:

@@ -145,7 +145,7 @@ class SNESCallbacks:
 
         Raises:
             NotImplementedError: on more than one process, with friction, or for an energy
-                a patch cannot assemble (:meth:`LocalRelaxation.bind`).
+                a patch cannot assemble (:meth:`~fenics_matdepth.LocalRelaxation.bind`).
         """
         return self._relaxation
 
