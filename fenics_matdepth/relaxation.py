@@ -69,7 +69,7 @@ class LocalRelaxation:
             towards the minimum of its own energy with the rest held, and without a floor it
             may crush a cell the global problem would not (measured on the knee).
         min_norm: no relaxation once the residual norm is below this (a force); None: ten
-            times the problem's ``snes_atol``.
+            times the ``snes_atol`` of the problem it is bound to.
 
     Attributes:
         uses: patches relaxed since the problem was given this relaxation.
@@ -124,12 +124,13 @@ class LocalRelaxation:
         self._fixed[global_dirichlet_dofs(V.mesh.comm, V, problem.bcs)] = True
         self._fixed[patches.held] = True
         self._patches, self._assembler = patches, problem.assembler
-        if self.min_norm is None:
-            self.min_norm = MIN_NORM_ATOL * problem.snes.getTolerances()[1]
+        self._floor = self.min_norm
+        if self._floor is None:  # the bound problem's own tolerance, on every bind
+            self._floor = MIN_NORM_ATOL * problem.snes.getTolerances()[1]
 
     def wanted(self, norm: float) -> bool:
         """Whether a residual of norm ``norm`` is worth relaxing (finite, over ``min_norm``)."""
-        return bool(np.isfinite(norm) and norm > self.min_norm)
+        return bool(np.isfinite(norm) and norm > self._floor)
 
     def patch(self, F: PETSc.Vec) -> np.ndarray | None:
         """The free dofs of the patch round the vertices holding ``share`` of ``|F|^2``, or

@@ -283,8 +283,16 @@ def test_a_solve_with_the_relaxation_reaches_the_same_equilibrium():
 
 
 def test_bad_settings_and_unsupported_problems_are_refused():
-    """Parameters out of range; friction; an interior-facet integral in the energy."""
+    """The floor of the residual norm from each bound problem's tolerance; parameters out of
+    range; friction; an interior-facet integral in the energy."""
     u, energy, bcs = _block(2)
+    # the floor below which nothing is relaxed: ten times the bound problem's snes_atol
+    relaxation = fm.LocalRelaxation(energy)
+    for atol in (1e-3, 1e-6):
+        with _problem(u, energy, bcs, petsc_options={"snes_atol": atol}) as problem:
+            problem.relaxation = relaxation
+            assert relaxation.wanted(11.0 * atol) and not relaxation.wanted(9.0 * atol)
+            assert not relaxation.wanted(np.nan) and relaxation.min_norm is None
     for kwargs in ({"share": 0.0}, {"share": 1.5}, {"vertices": 0}, {"iterations": 0},
                    {"rtol": 1.0}, {"det_floor": 1.0}):  # fmt: skip
         with pytest.raises(ValueError, match=r"share|vertices|rtol"):
