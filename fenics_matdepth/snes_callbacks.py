@@ -144,6 +144,8 @@ class SNESCallbacks:
         it prepares the relaxation for this problem (compiles its patch forms).
 
         Raises:
+            ValueError: on a problem made without ``energy`` (the relaxation runs where the
+                energy judges the steps, once the Dirichlet dofs hold their values).
             NotImplementedError: on more than one process, with friction, or for an energy
                 a patch cannot assemble (:meth:`~fenics_matdepth.LocalRelaxation.bind`).
         """
@@ -152,6 +154,11 @@ class SNESCallbacks:
     @relaxation.setter
     def relaxation(self, value) -> None:
         if value is not None:
+            if self._energy is None:
+                raise ValueError(
+                    "the local relaxation needs the problem's energy: make the problem with "
+                    "energy=... (the energy whose derivative is its residual form)"
+                )
             value.bind(self)
         self._relaxation = value
 
@@ -161,12 +168,9 @@ class SNESCallbacks:
         patch's energy does not see): where it moved the iterate, SNES's residual and its norm
         are the relaxed iterate's, and the residual and energy kept for the last trial state
         are stale. Whether it moved the iterate."""
-        if not self._relaxation.wanted(snes.getFunctionNorm()):
+        if not (self._bcs_met and self._relaxation.wanted(snes.getFunctionNorm())):
             return False
-        x = snes.getSolution()
-        if self.assembler.bc_offset(x) > 1e-12 * max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0):
-            return False
-        if self._relaxation.relax(x, snes.getFunction()[0]) is None:
+        if self._relaxation.relax(snes.getSolution(), snes.getFunction()[0]) is None:
             return False
         self._trial_valid, self._energy_value = False, np.nan
         self._resumed_unchanged = False

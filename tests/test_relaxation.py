@@ -227,10 +227,11 @@ def test_a_patch_no_contact_pair_reaches_is_the_bulk_alone_and_the_det_floor_hol
 
 
 def test_nothing_is_relaxed_while_a_dirichlet_dof_is_off_its_value():
-    """The problem's hook before a Newton step (``_relax``), on a block with a pushed vertex:
-    with the clamped face 1e-3 off its value it leaves the iterate alone (the residual's free
-    rows then hold the lifting, which a patch's energy does not see); on its value it relaxes,
-    and SNES's residual norm is the relaxed iterate's."""
+    """The problem's callback before a Newton step (``_start_iteration``, the second
+    iteration of a solve), on a block with a pushed vertex: with the clamped face 1e-3 off its
+    value it leaves the iterate alone (the residual's free rows then hold the lifting, which a
+    patch's energy does not see); on its value it relaxes, and SNES's residual norm is the
+    relaxed iterate's. A problem without an energy refuses the relaxation."""
     u, energy, bcs = _block()
     X = u.function_space.tabulate_dof_coordinates()
     vertex = int(np.argmin(np.linalg.norm(X - [0.4, 0.4, 0.4], axis=1)))
@@ -245,11 +246,18 @@ def test_nothing_is_relaxed_while_a_dirichlet_dof_is_off_its_value():
             snes.setSolution(x)
             F.copy(snes.getFunction()[0])
             snes.setFunctionNorm(F.norm())
-            assert problem._relax(snes) is relaxed
+            problem._first_norm = problem._last_norm = np.inf  # as a solve's start sets them
+            problem._start_iteration(snes, 1)
             moved = snes.getSolution().getArray().reshape(-1, 3)
             assert np.array_equal(moved, values) is not relaxed
             assert snes.getFunctionNorm() == pytest.approx(snes.getFunction()[0].norm())
         assert snes.getFunctionNorm() < 0.5 * F.norm()
+    contact = fm.ContactOperator(u, fm.material_depth(u.function_space.mesh), penalty=50.0)
+    residual = ufl.derivative(energy, u, ufl.TestFunction(u.function_space))
+    with fm.ContactProblem(residual, u, contact, bcs=bcs) as problem:
+        with pytest.raises(ValueError, match="energy="):
+            problem.relaxation = fm.LocalRelaxation(energy)
+        assert problem.relaxation is None
 
 
 def test_a_solve_with_the_relaxation_reaches_the_same_equilibrium():
