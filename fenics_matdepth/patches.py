@@ -1,16 +1,23 @@
 """The energy, gradient and Hessian of a contact problem on a patch of vertices, the others
 held, assembled over the patch's cells and contact pairs only (for
-:class:`~fenics_matdepth.relaxation.LocalRelaxation`). Serial.
+:class:`~fenics_matdepth.relaxation.LocalRelaxation`), serially or on a distributed mesh.
 
 :class:`PatchAssembly` compiles the bulk energy and its first two derivatives once; for each
-patch it makes DOLFINx forms of the same compiled code whose cell integrals run over the cells
-touching a patch vertex (``dolfinx.fem.create_form`` with those cells as the integrals'
+patch it makes DOLFINx forms of the same compiled code whose cell integrals run over the owned
+cells touching a patch vertex (``dolfinx.fem.create_form`` with those cells as the integrals'
 subdomains), and keeps the contact operator's candidate pairs (found with its skin) that hold a
 patch vertex and lie within ``NEAR_EDGES`` mean boundary edges. A patch's energy differs from
 the whole problem's by the energy of what it does not touch, which the patch's vertices do not
 change; its gradient and Hessian at the patch's dofs are the whole problem's. A trial state
 that inverts a patch cell (or, with ``det_floor``, brings its det F that close to 0) has
 infinite energy.
+
+A patch is numbered by its global dofs, the same on every process. In parallel each process
+assembles its owned cells and the contact pairs it evaluates (each cell and pair once over the
+processes) into the patch's numbering, ghost rows included, and the sums are reduced on one
+process and broadcast (:func:`summed`), so that every process holds the same patch gradient,
+Hessian and energy to the bit and takes the same local steps. Every call of a
+:class:`PatchModel` is collective.
 
 Left out: friction; pairs that a local step brings into contact from further apart; and the
 dofs of vertices on a facet of an exterior-facet integral (a spring or a dead load on a
@@ -21,6 +28,7 @@ from __future__ import annotations
 
 import types
 
+from mpi4py import MPI
 from petsc4py import PETSc
 
 import dolfinx
@@ -30,11 +38,31 @@ import ufl
 from fenics_matdepth.contact import evaluation, pairs
 from fenics_matdepth.geometry.intersect import near_pairs
 
-__all__ = ["PatchAssembly", "PatchModel"]
+__all__ = ["PatchAssembly", "PatchModel", "summed"]
 
 #: the contact pairs of a patch: the candidates holding a patch vertex whose triangle and
 #: tetrahedron lie within this many mean boundary edges of each other
 NEAR_EDGES = 0.1
+
+
+def summed(comm: MPI.Comm, values) -> np.ndarray:
+    """The sum over the processes of ``values`` (an array of floats), the same to the bit on
+    every process: reduced on one and broadcast (collective)."""
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    if comm.size == 1:
+        return values
+    out = np.empty_like(values)
+    comm.Reduce(values, out, op=MPI.SUM, root=0)
+    comm.Bcast(out, root=0)
+    return out
+
+
+def positions(patch: np.ndarray, dofs: np.ndarray) -> np.ndarray:
+    """The position of each of ``dofs`` in the sorted array ``patch`` (-1: not in it)."""
+    if patch.size == 0:
+        return np.full(np.shape(dofs), -1, dtype=np.int64)
+    at = np.minimum(np.searchsorted(patch, dofs), patch.size - 1)
+    return np.where(patch[at] == dofs, at, -1)
 
 
 def _subdomain_ids(ident) -> list[int] | None:
@@ -55,19 +83,14 @@ class PatchAssembly:
         contact: the contact operator of ``u`` (its state is the one at :meth:`model`).
 
     Raises:
-        NotImplementedError: on more than one process, or for another kind of integral
-            (interior facets, vertices).
+        NotImplementedError: for another kind of integral (interior facets, vertices).
     """
 
     def __init__(self, energy: ufl.Form, u: dolfinx.fem.Function, contact):
         V = u.function_space
         mesh = V.mesh
-        if mesh.comm.size > 1:
-            raise NotImplementedError(
-                f"a patch is assembled on one process only, and this mesh is distributed "
-                f"over {mesh.comm.size}: leave the local relaxation off in parallel"
-            )
         self.u, self.V, self.mesh, self.contact = u, V, mesh, contact
+        self.comm = mesh.comm
         #: a patch's trial states whose lowest det F is at most this fraction of the patch's
         #: lowest at its start are refused (0: only inverted cells)
         self.det_floor = 0.0
@@ -77,13 +100,23 @@ class PatchAssembly:
             (dolfinx.fem.compile_form(mesh.comm, form), form, spaces)
             for form, spaces in ((energy, []), (residual, [V]), (jacobian, [V, V]))
         ]
-        self.cells = np.asarray(V.dofmap.list).reshape(-1, 4)
+        imap = V.dofmap.index_map
+        self.n_owned = imap.size_local
+        #: the global vertex (dof block) of each of this process's, owned then ghosts
+        self.global_vertex = imap.local_to_global(
+            np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
+        ).astype(np.int64)
+        #: the global dof of each of this process's dofs (3 a vertex)
+        self.global_dof = (3 * self.global_vertex[:, None] + np.arange(3)).ravel()
+        #: the owned cells (this process's vertex numbering), each assembled by its owner
+        self.cells = np.asarray(V.dofmap.list)[: mesh.topology.index_map(3).size_local]
+        self._cells_global = self.global_vertex[self.cells]
         self.X = V.tabulate_dof_coordinates()
         p = self.X[self.cells]
         self._volumes = np.linalg.det(p[:, 1:] - p[:, :1])  # each cell's, at rest
         # the cells of each cell integral's subdomain id (-1, everywhere: None)
         self._cell_sets: dict[int, np.ndarray | None] = {}
-        held = []
+        held = [np.empty(0, np.int32)]
         for itg in energy.integrals():
             kind, data = itg.integral_type(), itg.subdomain_data()
             ids = _subdomain_ids(itg.subdomain_id())
@@ -102,14 +135,23 @@ class PatchAssembly:
                     f"the energy has {kind} integrals, which a patch cannot assemble over its "
                     "cells: leave the local relaxation off for this problem"
                 )
-        blocks = np.unique(np.concatenate(held)) if held else np.empty(0, np.int32)
-        #: dofs held on every patch (on a facet of an exterior-facet integral)
+        blocks = self.global_vertex[np.concatenate(held)]
+        blocks = np.unique(np.concatenate(self.comm.allgather(blocks)))
+        #: global dofs held on every patch (on a facet of an exterior-facet integral)
         self.held = (3 * blocks[:, None] + np.arange(3)).ravel()
 
+    def around(self, vertices: np.ndarray) -> np.ndarray:
+        """The global vertices of the cells touching one of the global ``vertices``, sorted
+        (collective)."""
+        mine = np.unique(self._cells_global[np.isin(self._cells_global, vertices).any(axis=1)])
+        if self.comm.size == 1:
+            return mine
+        return np.unique(np.concatenate(self.comm.allgather(mine)))
+
     def model(self, dofs: np.ndarray) -> PatchModel:
-        """The patch of the free dofs ``dofs`` (whole vertices), at the contact operator's
-        current candidate pairs."""
-        return PatchModel(self, np.asarray(dofs))
+        """The patch of the free global dofs ``dofs`` (sorted, whole vertices, the same on
+        every process), at the contact operator's current candidate pairs (collective)."""
+        return PatchModel(self, np.asarray(dofs, dtype=np.int64))
 
     def forms(self, cells: np.ndarray) -> list[dolfinx.fem.Form]:
         """The energy, residual and Jacobian forms over ``cells`` (sorted)."""
@@ -134,18 +176,25 @@ class PatchAssembly:
 
 
 class PatchModel:
-    """One patch: energy, gradient and Hessian at its dofs' values of a full state ``x``."""
+    """One patch: energy, gradient and Hessian at its dofs' values of a full state ``x``, in
+    the patch's numbering (its sorted global dofs), the same on every process. Collective."""
 
     def __init__(self, owner: PatchAssembly, dofs: np.ndarray):
         self.owner, self.dofs = owner, dofs
         self.floor: float | None = None  # the lowest det F a trial state may have (energy)
         vertices = np.unique(dofs // 3)
-        touching = np.isin(owner.cells, vertices).any(axis=1)
-        self.cells = np.flatnonzero(touching).astype(np.int32)
+        touching = np.isin(owner._cells_global, vertices).any(axis=1)
+        self.cells = np.flatnonzero(touching).astype(np.int32)  # owned, local numbering
         self.energy_form, self.residual_form, self.jacobian_form = owner.forms(self.cells)
         self.matrix = dolfinx.fem.create_matrix(self.jacobian_form)
-        self.local = np.full(3 * owner.X.shape[0], -1, dtype=np.int64)
-        self.local[dofs] = np.arange(dofs.size)
+        # this process's dofs in the patch (owned and ghosts) and their patch positions
+        at = positions(dofs, owner.global_dof)
+        self.rows = np.flatnonzero(at >= 0)
+        self.rows_at = at[self.rows]
+        owned = self.rows < 3 * owner.n_owned
+        self._owned_rows = self.rows[owned].astype(PETSc.IntType)  # = the PETSc vector's
+        self._owned_at = self.rows_at[owned]
+        self._owned_global = dofs[self._owned_at].astype(PETSc.IntType)
         contact = owner.contact
         s = contact.surface
         search = contact.pair_search
@@ -161,20 +210,32 @@ class PatchModel:
         # the pairs' dofs in the patch's numbering (-1: held)
         held = s.global_vertex[pairs.pair_vertices(s, contact.integration, pa, pk)]
         held_dofs = (3 * held[:, :, None] + np.arange(3)).reshape(pa.size, 3 * held.shape[1])
-        self.pair_dofs = self.local[held_dofs]
+        self.pair_dofs = positions(dofs, held_dofs)
+
+    def values(self, x: PETSc.Vec) -> np.ndarray:
+        """The patch's dofs' values in ``x`` (a vector of the problem's layout)."""
+        v = np.zeros(self.dofs.size)
+        v[self._owned_at] = x.getArray(readonly=True)[self._owned_rows]
+        return summed(self.owner.comm, v)
+
+    def put(self, x: PETSc.Vec, values: np.ndarray) -> None:
+        """Set the patch's dofs of ``x`` to ``values`` (the patch's numbering)."""
+        x.setValues(self._owned_global, values[self._owned_at])
+        x.assemble()
 
     def _set(self, x: PETSc.Vec) -> None:
         u = self.owner.u
         if x.handle == u.x.petsc_vec.handle:
             raise ValueError("a patch model evaluates states apart from u's own vector")
-        u.x.array[:] = x.getArray(readonly=True)
+        u.x.array[: 3 * self.owner.n_owned] = x.getArray(readonly=True)
+        u.x.scatter_forward()
 
     def _contact(self, want_grad: bool, want_hess: bool) -> tuple:
         contact = self.owner.contact
         s = contact.surface
+        shift = s.pull(self.owner.u.x.array[: 3 * self.owner.n_owned].reshape(-1, 3))
         current = types.SimpleNamespace(
-            x=s.X + self.owner.u.x.array.reshape(-1, 3)[s.global_vertex],
-            kernel_depth=s.kernel_depth, tri=s.tri, kernel_tets=s.kernel_tets,
+            x=s.X + shift, kernel_depth=s.kernel_depth, tri=s.tri, kernel_tets=s.kernel_tets,
             weight=s.weight, nodes=s.nodes, global_vertex=s.global_vertex,
         )  # fmt: skip
         return evaluation.pair_arrays(
@@ -191,35 +252,40 @@ class PatchModel:
         cells = owner.cells[self.cells]
         p = owner.X[cells] + owner.u.x.array.reshape(-1, 3)[cells]  # the patch cells' vertices
         volumes = np.linalg.det(p[:, 1:] - p[:, :1])
-        lowest = (volumes / owner._volumes[self.cells]).min()
+        lowest = (volumes / owner._volumes[self.cells]).min() if cells.size else np.inf
+        lowest = owner.comm.allreduce(lowest, op=MPI.MIN)
         if self.floor is None:
             self.floor = owner.det_floor * max(lowest, 0.0)
         if not (lowest > 0.0 and lowest > self.floor):
             return np.inf
         value = dolfinx.fem.assemble_scalar(self.energy_form)
         value += float(np.sum(self._contact(False, False)[0]))
+        value = float(summed(owner.comm, [value])[0])
         return value if np.isfinite(value) else np.inf
 
     def gradient(self, x: PETSc.Vec) -> np.ndarray:
         """The energy's gradient at the patch's dofs, at ``x``."""
         self._set(x)
-        g = dolfinx.fem.assemble_vector(self.residual_form).array[self.dofs]
+        g = np.zeros(self.dofs.size)
+        g[self.rows_at] = dolfinx.fem.assemble_vector(self.residual_form).array[self.rows]
         energy, grad, _ = self._contact(True, False)
         d, grad = self.pair_dofs[energy > 0.0], grad[energy > 0.0]  # the pairs in contact
         keep = d >= 0
         np.add.at(g, d[keep], grad[keep])
-        return g
+        return summed(self.owner.comm, g)
 
     def hessian(self, x: PETSc.Vec) -> np.ndarray:
         """The energy's Hessian on the patch's dofs (dense), at ``x``."""
         self._set(x)
         self.matrix.set_value(0.0)
         dolfinx.fem.assemble_matrix(self.matrix, self.jacobian_form)
-        K = self.matrix.to_scipy().tocsr()[self.dofs][:, self.dofs].toarray()
+        K = np.zeros((self.dofs.size, self.dofs.size))
+        local = self.matrix.to_scipy(ghosted=True).tocsr()[self.rows][:, self.rows]
+        K[np.ix_(self.rows_at, self.rows_at)] = local.toarray()
         energy, _, hess = self._contact(True, True)
         d, hess = self.pair_dofs[energy > 0.0], hess[energy > 0.0]  # the pairs in contact
         keep = (d[:, :, None] >= 0) & (d[:, None, :] >= 0)
         rows = np.broadcast_to(d[:, :, None], hess.shape)[keep]
         cols = np.broadcast_to(d[:, None, :], hess.shape)[keep]
         np.add.at(K, (rows, cols), hess[keep])
-        return K
+        return summed(self.owner.comm, K)

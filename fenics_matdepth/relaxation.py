@@ -18,9 +18,9 @@ itself alone (:mod:`fenics_matdepth.patches`): its cells and the contact pairs t
 its vertices, about a millisecond to 20 ms an evaluation on the knee against 0.2 s for the
 whole leg.
 
-Opt-in and serial (a patch assembles on one process); the knee demo sets it: 613 to 706
-Newton iterations to 150 deg on three paths against 884 to 1,136 without
-(docs/measurements.md).
+Opt-in, serially and on a distributed mesh (every process takes the same local steps, see
+:mod:`fenics_matdepth.patches`); the knee demo sets it: 613 to 706 Newton iterations to 150 deg
+on three paths against 884 to 1,136 without (docs/measurements.md).
 
 Set it on a problem: ``problem.relaxation = fm.LocalRelaxation(energy)``, ``energy`` the bulk
 energy whose derivative is the problem's residual form.
@@ -37,7 +37,7 @@ import numpy as np
 import ufl
 
 from fenics_matdepth.contact.assembly import global_dirichlet_dofs
-from fenics_matdepth.patches import PatchAssembly
+from fenics_matdepth.patches import PatchAssembly, summed
 
 __all__ = ["LocalRelaxation"]
 
@@ -108,8 +108,8 @@ class LocalRelaxation:
         energy's forms for the patches. The problem's ``relaxation`` setter calls this.
 
         Raises:
-            NotImplementedError: on more than one process, with friction, or for an energy
-                with other integrals than cell and exterior-facet ones.
+            NotImplementedError: with friction, or for an energy with other integrals than
+                cell and exterior-facet ones.
         """
         contact = problem.assembler.contact
         if getattr(contact, "friction", None) is not None:
@@ -120,9 +120,8 @@ class LocalRelaxation:
         patches = PatchAssembly(self.energy, problem.u, contact)
         patches.det_floor = self.det_floor
         V = problem.u.function_space
-        self._fixed = np.zeros(V.dofmap.index_map.size_local * 3, dtype=bool)
-        self._fixed[global_dirichlet_dofs(V.mesh.comm, V, problem.bcs)] = True
-        self._fixed[patches.held] = True
+        #: the global dofs never in a patch (Dirichlet, exterior-facet integrals), sorted
+        self._fixed = np.union1d(global_dirichlet_dofs(V.mesh.comm, V, problem.bcs), patches.held)
         self._patches, self._assembler = patches, problem.assembler
         self._floor = self.min_norm
         if self._floor is None:  # the bound problem's own tolerance, on every bind
@@ -133,17 +132,25 @@ class LocalRelaxation:
         return bool(np.isfinite(norm) and norm > self._floor)
 
     def patch(self, F: PETSc.Vec) -> np.ndarray | None:
-        """The free dofs of the patch round the vertices holding ``share`` of ``|F|^2``, or
-        None where more than ``vertices`` vertices are needed for it."""
-        r2 = (F.getArray(readonly=True).reshape(-1, 3) ** 2).sum(axis=1)
-        order = np.argsort(r2)[::-1]
-        needed = int(np.searchsorted(np.cumsum(r2[order]), self.share * r2.sum())) + 1
+        """The free global dofs (sorted) of the patch round the vertices holding ``share`` of
+        ``|F|^2``, or None where more than ``vertices`` vertices are needed for it; the same on
+        every process (collective)."""
+        patches = self._patches
+        comm = patches.comm
+        r2 = (F.getArray(readonly=True).reshape(-1, 3) ** 2).sum(axis=1)  # the owned vertices
+        total = summed(comm, [r2.sum()])[0]
+        top = np.argsort(r2)[::-1][: self.vertices]  # a process's, enough for the whole
+        heavy, vertex = r2[top], patches.global_vertex[top]
+        if comm.size > 1:
+            heavy = np.concatenate(comm.allgather(heavy))
+            vertex = np.concatenate(comm.allgather(vertex))
+        order = np.lexsort((vertex, -heavy))
+        needed = int(np.searchsorted(np.cumsum(heavy[order]), self.share * total)) + 1
         if needed > self.vertices:
             return None
-        cells = self._patches.cells
-        around = np.unique(cells[np.isin(cells, order[:needed]).any(axis=1)])
+        around = patches.around(vertex[order[:needed]])
         dofs = (3 * around[:, None] + np.arange(3)).ravel()
-        return dofs[~self._fixed[dofs]].astype(PETSc.IntType)
+        return dofs[~np.isin(dofs, self._fixed)].astype(PETSc.IntType)
 
     def relax(self, x: PETSc.Vec, F: PETSc.Vec) -> tuple | None:
         """Relax ``x`` in place from its residual ``F``, which then holds the relaxed
@@ -154,11 +161,12 @@ class LocalRelaxation:
         if dofs is None or dofs.size == 0:
             return None
         tic = time.perf_counter()
-        model = self._patches.model(dofs)
+        model, comm = self._patches.model(dofs), self._patches.comm
         start_x, trial = x.copy(), x.duplicate()
         energy = model.energy(x)
         f = model.gradient(x)  # the energy's alone: the rows of F where the bcs are met
         start = np.linalg.norm(f)
+        values = model.values(x)
         iterations, current = 0, True  # current: f is the gradient at x
         try:
             for iterations in range(1, self.iterations + 1):
@@ -169,7 +177,9 @@ class LocalRelaxation:
                     iterations -= 1
                     break
                 K = model.hessian(x)
-                step = np.linalg.lstsq(K, f, rcond=None)[0]
+                step = np.ascontiguousarray(np.linalg.lstsq(K, f, rcond=None)[0])
+                if comm.size > 1:  # one process's solve: the same steps everywhere
+                    comm.Bcast(step, root=0)
                 slope = -f @ step
                 if not slope < 0.0:  # the patch's Newton step climbs: a gradient step instead
                     step = f / np.abs(np.diag(K)).max()
@@ -177,8 +187,7 @@ class LocalRelaxation:
                 moved = False
                 for length in 0.5 ** np.arange(BACKTRACKS):
                     x.copy(trial)
-                    trial.setValues(dofs, x.getValues(dofs) - length * step)
-                    trial.assemble()
+                    model.put(trial, values - length * step)
                     value = model.energy(trial)
                     if value <= energy + ARMIJO * length * slope:
                         moved = True
@@ -186,6 +195,7 @@ class LocalRelaxation:
                 if not moved:
                     break
                 trial.copy(x)
+                values = values - length * step
                 energy, current = value, False
             self._assembler.set_state(x)
             admissible = self._assembler.residual(x, F)
@@ -193,7 +203,7 @@ class LocalRelaxation:
                 start_x.copy(x)
                 self._assembler.set_state(x)
                 self._assembler.residual(x, F)
-            norm = np.linalg.norm(F.getValues(dofs))
+            norm = np.linalg.norm(model.values(F))
         finally:
             trial.destroy()
             start_x.destroy()

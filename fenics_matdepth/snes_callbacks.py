@@ -140,14 +140,14 @@ class SNESCallbacks:
     @property
     def relaxation(self):
         """None (the default), or a :class:`~fenics_matdepth.LocalRelaxation` that relaxes a
-        concentrated residual before each Newton step after a solve's first (serial). Setting
+        concentrated residual before each Newton step after a solve's first. Setting
         it prepares the relaxation for this problem (compiles its patch forms).
 
         Raises:
             ValueError: on a problem made without ``energy`` (the relaxation runs where the
                 energy judges the steps, once the Dirichlet dofs hold their values).
-            NotImplementedError: on more than one process, with friction, or for an energy
-                a patch cannot assemble (:meth:`~fenics_matdepth.LocalRelaxation.bind`).
+            NotImplementedError: with friction, or for an energy a patch cannot assemble
+                (:meth:`~fenics_matdepth.LocalRelaxation.bind`).
         """
         return self._relaxation
 

@@ -1,8 +1,8 @@
 """The local relaxation (``fm.LocalRelaxation``) and its patch assembly (``fm.patches``): a
 pushed vertex relaxed back, a spread residual left alone, a patch's gradient, Hessian and
 energy against the whole problem's, the det F floor, a solve with the relaxation against one
-without, and the errors. Each rank its own mesh (``MPI.COMM_SELF``), but for the distributed
-mesh's error."""
+without, and the errors. Each rank its own mesh (``MPI.COMM_SELF``), and under ``mpirun``
+the same on a mesh distributed over the processes (``MPI.COMM_WORLD``) against one process's."""
 
 from __future__ import annotations
 
@@ -16,9 +16,18 @@ from conftest import merged_mesh
 
 import fenics_matdepth as fm
 from fenics_matdepth.meshing import box_tetrahedra
-from fenics_matdepth.patches import PatchModel
+from fenics_matdepth.patches import PatchModel, summed
 
 pytestmark = pytest.mark.filterwarnings("ignore::fenics_matdepth.DepthDeficiencyWarning")
+
+#: one process's mesh, and under mpirun one distributed over the processes
+COMMS = [
+    MPI.COMM_SELF,
+    pytest.param(
+        MPI.COMM_WORLD,
+        marks=pytest.mark.skipif(MPI.COMM_WORLD.size == 1, reason="a mesh over processes"),
+    ),
+]
 
 
 def _block(n: int = 5, comm=MPI.COMM_SELF):
@@ -44,7 +53,7 @@ def _problem(u, energy, bcs, friction=None, **options):
 def _state(problem, values: np.ndarray):
     """The iterate ``values`` (n_vertices, 3), its residual, and the total energy there."""
     x = problem.u.x.petsc_vec.copy()
-    x.setArray(values.ravel())
+    x.setArray(values.ravel()[: x.getLocalSize()])  # the owned rows
     F = x.duplicate()
     problem.assembler.set_state(x)
     assert problem.assembler.residual(x, F)
@@ -106,20 +115,21 @@ def test_a_spread_residual_is_left_alone_and_clamped_dofs_are_never_in_a_patch()
         assert bottom in cells[(cells == above).any(axis=1)] and np.isin(3 * bottom + 2, clamped)
 
 
-def _sunk_blocks():
+def _sunk_blocks(comm=MPI.COMM_SELF):
     """A 1 x 1 x 0.5 block (cell tag 1) and a smaller one (tag 2) sunk 0.03 into it, the
     lower one's bottom clamped and the upper one's top pushed on by a spring (an
     exterior-facet integral), each its own neo-Hookean; the displacement, energy, conditions
     and reference coordinates, at a state with the Dirichlet values reached."""
     mesh = merged_mesh(
-        MPI.COMM_SELF,
+        comm,
         box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
         box_tetrahedra(2, (0.25, 0.2, 0.51), (0.5, 0.55, 0.4)),
     )
     V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
     u = dolfinx.fem.Function(V)
     tdim = mesh.topology.dim
-    n_cells = mesh.topology.index_map(tdim).size_local
+    cell_map = mesh.topology.index_map(tdim)
+    n_cells = cell_map.size_local + cell_map.num_ghosts
     mid = dolfinx.mesh.compute_midpoints(mesh, tdim, np.arange(n_cells, dtype=np.int32))
     tags = dolfinx.mesh.meshtags(
         mesh, tdim, np.arange(n_cells, dtype=np.int32), np.where(mid[:, 2] > 0.5, 2, 1)
@@ -139,50 +149,75 @@ def _sunk_blocks():
         dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, bottom), V)
     ]
     X = V.tabulate_dof_coordinates()
-    rng = np.random.default_rng(3)
-    values = 0.004 * rng.standard_normal(X.shape)
+    # a function of the position: the same state on one process and on several
+    waves = np.array([[41.0, 17.0, 29.0], [23.0, 37.0, 13.0], [19.0, 31.0, 43.0]])
+    values = 0.004 * np.sin(X @ waves)
     values[X[:, 2] > 0.505, 2] -= 0.03
     values[np.isclose(X[:, 2], 0.0)] = 0.0
     u.x.array[:] = values.ravel()
     return u, energy, bcs, X
 
 
-def test_a_patch_is_the_whole_problem_on_its_dofs():
+def _nearest_vertex(V, point) -> int:
+    """The global vertex (dof block) of ``V`` nearest to ``point`` (collective)."""
+    imap = V.dofmap.index_map
+    X = V.tabulate_dof_coordinates()[: imap.size_local]
+    d = np.linalg.norm(X - point, axis=1)
+    i = int(np.argmin(d)) if d.size else 0
+    best = (float(d[i]) if d.size else np.inf, int(imap.local_range[0] + i))
+    return min(V.mesh.comm.allgather(best))[1]
+
+
+def _whole_block(A, model: PatchModel) -> np.ndarray:
+    """The block of the (distributed) matrix ``A`` on the patch's dofs, on every process."""
+    K = np.zeros((model.dofs.size, model.dofs.size))
+    if model._owned_global.size:
+        cols = model.dofs.astype(np.int32)
+        K[model._owned_at] = A.getValues(model._owned_global, cols).reshape(-1, cols.size)
+    return summed(model.owner.comm, K)
+
+
+@pytest.mark.parametrize("comm", COMMS)
+def test_a_patch_is_the_whole_problem_on_its_dofs(comm):
     """On two blocks sunk into each other (two cell tags, a spring on the upper one's top), the
     patch round a vertex of the upper block's bottom, in contact, has the whole problem's
     gradient (the residual's rows) and Hessian (the Jacobian's block) there, and its energy
-    changes as the whole problem's when its dofs move; the spring's vertices are held."""
-    u, energy, bcs, X = _sunk_blocks()
+    changes as the whole problem's when its dofs move; the spring's vertices are held. On a
+    distributed mesh, the patch's cells and pairs lie on several processes."""
+    u, energy, bcs, X = _sunk_blocks(comm)
+    V = u.function_space
     with _problem(u, energy, bcs) as problem:
         relaxation = problem.relaxation = fm.LocalRelaxation(energy)
         x, F, _ = _state(problem, u.x.array.reshape(-1, 3).copy())
         assert problem.assembler.contact.energy() > 0.0
-        cells = np.asarray(u.function_space.dofmap.list)
-        vertex = int(np.argmin(np.linalg.norm(X - [0.375, 0.35, 0.51], axis=1)))
-        around = np.unique(cells[(cells == vertex).any(axis=1)])
+        patches = relaxation._patches
+        around = patches.around([_nearest_vertex(V, [0.375, 0.35, 0.51])])
         dofs = (3 * around[:, None] + np.arange(3)).ravel()
-        dofs = dofs[~relaxation._fixed[dofs]].astype(np.int32)
-        top = np.isclose(X[:, 2], 0.91)
-        assert relaxation._fixed.reshape(-1, 3)[top].all() and dofs.size == 3 * around.size
+        dofs = dofs[~np.isin(dofs, relaxation._fixed)]
+        top = patches.global_vertex[np.isclose(X[:, 2], 0.91)]
+        assert np.isin(3 * top[:, None] + np.arange(3), relaxation._fixed).all()
+        assert dofs.size == 3 * around.size
         model = relaxation._patches.model(dofs)
-        assert isinstance(model, PatchModel) and model.pair_a.size > 0
+        assert isinstance(model, PatchModel)
+        assert comm.allreduce(model.pair_a.size) > 0
+        if comm.size > 1:  # the patch's cells lie on more than one process
+            assert comm.allreduce(int(model.cells.size > 0)) > 1
         gradient = model.gradient(x)
         assert np.abs(gradient).max() > 1e-3
         scale = np.abs(gradient).max()
-        assert np.allclose(gradient, F.getValues(dofs), rtol=1e-10, atol=1e-12 * scale)
+        assert np.allclose(gradient, model.values(F), rtol=1e-10, atol=1e-12 * scale)
         problem.assembler.set_state(x)
         A = problem.assembler.matrix
         problem.assembler.jacobian(A)
-        whole = A.getValues(dofs, dofs)
+        whole = _whole_block(A, model)
         hessian = model.hessian(x)
         assert np.allclose(hessian, whole, rtol=1e-10, atol=1e-12 * np.abs(whole).max())
         trial = x.copy()
         step = 0.003 * np.random.default_rng(4).standard_normal(dofs.size)
-        trial.setValues(dofs, x.getValues(dofs) + step)
-        trial.assemble()
+        model.put(trial, model.values(x) + step)
         change = model.energy(trial) - model.energy(x)
-        _, _, after = _state(problem, trial.getArray().reshape(-1, 3))
-        _, _, start = _state(problem, x.getArray().reshape(-1, 3))
+        _, _, after = _state(problem, trial.getArray())
+        _, _, start = _state(problem, x.getArray())
         assert change == pytest.approx(after - start, rel=1e-9)
         assert abs(change) > 1e-6
 
@@ -260,12 +295,13 @@ def test_nothing_is_relaxed_while_a_dirichlet_dof_is_off_its_value():
         assert problem.relaxation is None
 
 
-def test_a_solve_with_the_relaxation_reaches_the_same_equilibrium():
+@pytest.mark.parametrize("comm", COMMS)
+def test_a_solve_with_the_relaxation_reaches_the_same_equilibrium(comm):
     """The sunk blocks solved from their pushed state with and without the relaxation (a
     patch in the upper block's corner pushed further; its top held sideways, so that the
     equilibrium is unique): the same equilibrium to the Newton tolerance's scale, and the
     relaxation was used."""
-    u, energy, bcs, X = _sunk_blocks()
+    u, energy, bcs, X = _sunk_blocks(comm)
     V = u.function_space
     top = dolfinx.mesh.locate_entities_boundary(V.mesh, 2, lambda x: np.isclose(x[2], 0.91))
     for i in (0, 1):
@@ -315,9 +351,43 @@ def test_bad_settings_and_unsupported_problems_are_refused():
             problem.relaxation = fm.LocalRelaxation(energy + jump)
 
 
+def _by_position(V, values: np.ndarray) -> np.ndarray:
+    """The owned rows of ``values`` (per vertex) of every process, ordered by their vertices'
+    coordinates (collective): a field compared across meshes numbered differently."""
+    n = V.dofmap.index_map.size_local
+    X = V.tabulate_dof_coordinates()[:n]
+    X = np.concatenate(V.mesh.comm.allgather(X))
+    values = np.concatenate(V.mesh.comm.allgather(values.reshape(-1, 3)[:n]))
+    return values[np.lexsort(np.round(X, 9).T)]
+
+
 @pytest.mark.skipif(MPI.COMM_WORLD.size == 1, reason="a mesh distributed over processes")
-def test_a_distributed_mesh_is_refused():
-    u, energy, bcs = _block(3, MPI.COMM_WORLD)
-    with _problem(u, energy, bcs) as problem:
-        with pytest.raises(NotImplementedError, match="one process"):
-            problem.relaxation = fm.LocalRelaxation(energy)
+def test_a_distributed_relaxation_is_the_serial_one():
+    """A block's pushed vertex relaxed on the mesh distributed over the processes and on one
+    process's copy: the same patch (by its vertices' coordinates), the same local iterations,
+    the same relaxed state and residual norm to round-off."""
+    results = []
+    for comm in (MPI.COMM_SELF, MPI.COMM_WORLD):
+        u, energy, bcs = _block(5, comm)
+        V = u.function_space
+        X = V.tabulate_dof_coordinates()
+        pushed = np.zeros_like(X)
+        pushed[np.linalg.norm(X - [0.4, 0.6, 0.4], axis=1) < 1e-9] = (0.04, -0.03, 0.02)
+        with _problem(u, energy, bcs) as problem:
+            relaxation = problem.relaxation = fm.LocalRelaxation(energy, det_floor=0.0)
+            x, F, _ = _state(problem, pushed)
+            dofs, iterations, start, end = relaxation.relax(x, F)
+            vertices = np.unique(dofs // 3)
+            imap = V.dofmap.index_map
+            mine = (vertices >= imap.local_range[0]) & (vertices < imap.local_range[1])
+            corners = X[vertices[mine] - imap.local_range[0]]
+            corners = np.concatenate(comm.allgather(corners))
+            corners = corners[np.lexsort(np.round(corners, 9).T)]
+            moved = _by_position(V, x.getArray())
+            pushed = _by_position(V, pushed)
+            results.append((corners, iterations, start, end, F.norm(), moved, pushed))
+    (c1, i1, s1, e1, n1, m1, p1), (c2, i2, s2, e2, n2, m2, _) = results
+    assert c1.shape == c2.shape and np.allclose(c1, c2) and i1 == i2 >= 1
+    assert s2 == pytest.approx(s1, rel=1e-10) and e2 == pytest.approx(e1, rel=1e-8)
+    assert n2 == pytest.approx(n1, rel=1e-8) and e1 < 0.05 * s1
+    assert np.abs(m1 - p1).max() > 0.03 and np.allclose(m1, m2, rtol=0.0, atol=1e-12)
