@@ -78,7 +78,7 @@
 # `MATDEPTH_KNEE_STEP_LIMIT` the longest move of a vertex coordinate in one Newton step, in
 # median boundary edges (default 2; 0: no limit; below),
 # `MATDEPTH_KNEE_RELAX=0` turns off the relaxation of a concentrated residual before each Newton
-# step (serial; below),
+# step (below),
 # `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
 # (below; the contact fields of every step go to `knee_contact.xdmf` either way);
 # `MATDEPTH_DEMO_OUTPUT` moves the output folder (default `demos/output`). Each converged step
@@ -493,15 +493,16 @@ if pseudo_transient > 0.0:
 if step_limit > 0.0:
     problem.step_limit = step_limit * stats["median_edge"]
 # Before each Newton step, where a few vertices hold most of the residual, their patch is
-# brought to equilibrium with the rest of the leg held (fm.LocalRelaxation; serial only, off on
-# more processes; MATDEPTH_KNEE_RELAX=0 turns it off). Past 100 deg the residual sits on two or
-# three vertices behind the knee, and the Newton step answers their force by moving a soft
-# region elsewhere; relaxed, 150 deg took 613 to 706 Newton iterations on three paths of this
-# machine against 884 to 1,136 without (docs/measurements.md)
-if relax and comm.size == 1 and knee_friction is None:
+# brought to equilibrium with the rest of the leg held (fm.LocalRelaxation; off with friction,
+# which a patch leaves out). Past 100 deg the residual sits on two or three vertices behind the
+# knee, and the Newton step answers their force by moving a soft region elsewhere; relaxed,
+# 150 deg took 613 to 706 Newton iterations on three paths of this machine against 884 to 1,136
+# without, and on 2 processes 633 to 1,423 against 842 to 1,102, fewer on two paths of three
+# (docs/measurements.md).
+if relax and knee_friction is None:
     problem.relaxation = fm.LocalRelaxation(energy)
 elif relax:
-    report("local relaxation: off (it runs serially and without friction only)")
+    report("local relaxation: off (it leaves friction out)")
 # -
 
 # ### The augmented Lagrangian
