@@ -818,6 +818,7 @@ def load_pressure(t: float) -> None:
 
 steps_file = output / "knee_steps.json"
 per_step: list[dict] = []
+relaxed_before = {"patches": 0}  # the local relaxation's count at the last converged step
 frames_angles: list[float] = []
 attempts = {"count": 0, "tic": time.perf_counter()}
 if resume:
@@ -923,6 +924,9 @@ def after_step(t: float) -> None:
         m["max_pressure"] = float(al["max_pressure"])
         save_pressure(t)
     m["cuts"] = attempts["count"] - 1
+    if problem.relaxation is not None:  # the patches relaxed in the step (its cut attempts too)
+        m["relaxed_patches"] = problem.relaxation.uses - relaxed_before["patches"]
+        relaxed_before["patches"] = problem.relaxation.uses
     m["seconds"] = time.perf_counter() - attempts["tic"]
     attempts["count"], attempts["tic"] = 0, time.perf_counter()
     per_step.append(m)

@@ -167,6 +167,8 @@ def _knee_claims(output: Path) -> None:
     # and relaxes patches in the first steps already
     relaxation = summary["relaxation"]
     assert relaxation is not None and relaxation["patches"] > 0, relaxation
+    # each step's record holds the patches relaxed in it
+    assert sum(step["relaxed_patches"] for step in steps) == relaxation["patches"], steps
     with np.load(output / "knee_checkpoint.npz") as checkpoint:
         meta = json.loads(str(checkpoint["meta"]))
         assert meta["steps"] == len(steps) and meta["load"] == pytest.approx(1.0), meta
