@@ -270,6 +270,12 @@ def main() -> None:
     print("  iterations by cause:")
     for cause, count in causes.items():
         print(f"    {cause:32s} {count:5d}  ({100 * count / max(total, 1):.0f} %)")
+    off = [m.get("steps_off_dirichlet") for m in summary["steps"]]
+    if off and None not in off:
+        attempts = sum(len(a) for a in steps)
+        print(f"  Newton steps begun with a Dirichlet dof off its value: {sum(off)}, "
+              f"{sum(off) - attempts} after the first of each of the {attempts} attempts; per "
+              f"step {off}")  # fmt: skip
     lambdas = [it.step_length for s in steps for a in s for it in a.iterations]
     rejected = sum(it.nan_cuts for s in steps for a in s for it in a.iterations)
     print(f"  inadmissible trial states rejected: {rejected}; median step length "

@@ -127,6 +127,11 @@ class SNESCallbacks:
     _start_offset = 0.0
     #: iterates of the last solve whose Dirichlet dofs were set onto their values
     dirichlet_snaps = 0
+    #: Newton steps taken with a Dirichlet dof off its value since the problem was made (the
+    #: first step of each solve after a change of the Dirichlet values is one; the steps
+    #: after it, judged by the residual norm, are the ones that cost)
+    steps_off_dirichlet = 0
+    _step_off_dirichlet = False  # whether the Newton step about to be taken is one
     #: None, or a :class:`~fenics_matdepth.PseudoTransient` shifting each Jacobian
     pseudo_transient = None
     _step_limit = None
@@ -279,6 +284,9 @@ class SNESCallbacks:
         reasons = PETSc.SNES.ConvergedReason
         xnorm, step_norm, fnorm = norms
         rtol, atol, stol, max_it = snes.getTolerances()
+        if iteration > 0:  # the step to this iterate was taken
+            self.steps_off_dirichlet += int(self._step_off_dirichlet)
+            self._step_off_dirichlet = False
         if not np.isfinite(fnorm):
             return NAN_REASON
         if iteration == 0 and not self._resuming:
@@ -475,6 +483,10 @@ class SNESCallbacks:
                 offset = 0.0
                 self._last_norm = snes.getFunctionNorm()
             self._bcs_met = offset <= 1e-12 * scale
+            self._step_off_dirichlet = not self._bcs_met
+        elif self.assembler.bcs:
+            scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
+            self._step_off_dirichlet = self.assembler.bc_offset(x) > 1e-12 * scale
         if self._relaxation is not None and iteration > 0 and self._relax(snes):
             self._last_norm = snes.getFunctionNorm()
         self._set_state(x)

@@ -169,6 +169,10 @@ def _knee_claims(output: Path) -> None:
     assert relaxation is not None and relaxation["patches"] > 0, relaxation
     # each step's record holds the patches relaxed in it
     assert sum(step["relaxed_patches"] for step in steps) == relaxation["patches"], steps
+    # and the Newton steps taken with the tibia's dofs off their values: at least the first of
+    # each step (its rotation comes in through it)
+    off = [step["steps_off_dirichlet"] for step in steps]
+    assert sum(off) == summary["steps_off_dirichlet"] and min(off) >= 1, off
     with np.load(output / "knee_checkpoint.npz") as checkpoint:
         meta = json.loads(str(checkpoint["meta"]))
         assert meta["steps"] == len(steps) and meta["load"] == pytest.approx(1.0), meta

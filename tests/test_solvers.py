@@ -572,6 +572,43 @@ def test_dirichlet_dofs_near_their_values_are_set_onto_them(case):
     problem.destroy()
 
 
+def test_the_newton_steps_taken_off_the_dirichlet_values_are_counted():
+    """The upper block, 0.05 above the lower one, pressed 0.15 down in one solve: the
+    collision detection shortens the first Newton steps, so several steps begin with the
+    pressed face off its values. The problem's count of such steps equals the count of the
+    iterates a monitor found off the values that a step was taken from (none was set onto
+    them here), and
+    grows by that count over a second solve from the same start."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm, gap=0.05)
+    bcs, _ = _press_bcs(mesh, V, 0.95, -0.15)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    problem = ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    offsets = []
+
+    def monitor(snes, iteration, norm):
+        x = snes.getSolution()
+        scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
+        offsets.append((iteration, problem.assembler.bc_offset(x) > 1e-12 * scale))
+
+    problem.snes.setMonitor(monitor)
+    counts = []
+    for _ in range(2):
+        u.x.array[:] = 0.0
+        offsets.clear()
+        result = problem.solve()
+        assert result.converged and problem.ccd_caps > 0 and problem.dirichlet_snaps == 0
+        # the iterates a step was taken from (a solve goes on after GMRES failed on a kept
+        # factorisation from the iterate reached, which the monitor sees again)
+        taken = [a for a, b in itertools.pairwise(offsets) if b[0] == a[0] + 1]
+        assert len(taken) == result.iterations
+        off = sum(is_off for _, is_off in taken)
+        assert off > 1  # the first step, and steps after it the collision detection shortened
+        counts.append(problem.steps_off_dirichlet)
+    assert counts == [off, 2 * off]
+    problem.destroy()
+
+
 def petsc_garbage_entries(comm: MPI.Comm, capfd) -> int:
     """How many PETSc objects wait in PETSc's garbage on ``comm`` (all ranks; collective;
     a mesh's communicator is its own, not MPI.COMM_WORLD).
