@@ -818,9 +818,9 @@ def load_pressure(t: float) -> None:
 
 steps_file = output / "knee_steps.json"
 per_step: list[dict] = []
-# the local relaxation's count and the problem's Newton steps off the Dirichlet values at the
-# last converged step
-relaxed_before = {"patches": 0, "off": 0}
+# the local relaxation's patches and the problem's Newton steps off the Dirichlet values, as
+# counted at the last converged step
+counts_before = {"patches": 0, "off": 0}
 frames_angles: list[float] = []
 attempts = {"count": 0, "tic": time.perf_counter()}
 if resume:
@@ -927,12 +927,12 @@ def after_step(t: float) -> None:
         save_pressure(t)
     m["cuts"] = attempts["count"] - 1
     if problem.relaxation is not None:  # the patches relaxed in the step (its cut attempts too)
-        m["relaxed_patches"] = problem.relaxation.uses - relaxed_before["patches"]
-        relaxed_before["patches"] = problem.relaxation.uses
+        m["relaxed_patches"] = problem.relaxation.uses - counts_before["patches"]
+        counts_before["patches"] = problem.relaxation.uses
     # the Newton steps taken with the tibia's dofs off their values (each attempt's first is
     # one; those after it are judged by the residual norm alone, and the relaxation waits)
-    m["steps_off_dirichlet"] = problem.steps_off_dirichlet - relaxed_before["off"]
-    relaxed_before["off"] = problem.steps_off_dirichlet
+    m["steps_off_dirichlet"] = problem.steps_off_dirichlet - counts_before["off"]
+    counts_before["off"] = problem.steps_off_dirichlet
     m["seconds"] = time.perf_counter() - attempts["tic"]
     attempts["count"], attempts["tic"] = 0, time.perf_counter()
     per_step.append(m)

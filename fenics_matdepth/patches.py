@@ -15,7 +15,7 @@ infinite energy.
 A patch is numbered by its global dofs, the same on every process. In parallel each process
 assembles its owned cells and the contact pairs it evaluates (each cell and pair once over the
 processes) into the patch's numbering, ghost rows included, and the sums are reduced on one
-process and broadcast (:func:`summed`), so that every process holds the same patch gradient,
+process and broadcast (``_mpi.summed``), so that every process holds the same patch gradient,
 Hessian and energy to the bit and takes the same local steps. Every call of a
 :class:`PatchModel` is collective.
 
@@ -35,34 +35,15 @@ import dolfinx
 import numpy as np
 import ufl
 
+from fenics_matdepth._mpi import positions, summed
 from fenics_matdepth.contact import evaluation, pairs
 from fenics_matdepth.geometry.intersect import near_pairs
 
-__all__ = ["PatchAssembly", "PatchModel", "summed"]
+__all__ = ["PatchAssembly", "PatchModel"]
 
 #: the contact pairs of a patch: the candidates holding a patch vertex whose triangle and
 #: tetrahedron lie within this many mean boundary edges of each other
 NEAR_EDGES = 0.1
-
-
-def summed(comm: MPI.Comm, values) -> np.ndarray:
-    """The sum over the processes of ``values`` (an array of floats), the same to the bit on
-    every process: reduced on one and broadcast (collective)."""
-    values = np.ascontiguousarray(values, dtype=np.float64)
-    if comm.size == 1:
-        return values
-    out = np.empty_like(values)
-    comm.Reduce(values, out, op=MPI.SUM, root=0)
-    comm.Bcast(out, root=0)
-    return out
-
-
-def positions(patch: np.ndarray, dofs: np.ndarray) -> np.ndarray:
-    """The position of each of ``dofs`` in the sorted array ``patch`` (-1: not in it)."""
-    if patch.size == 0:
-        return np.full(np.shape(dofs), -1, dtype=np.int64)
-    at = np.minimum(np.searchsorted(patch, dofs), patch.size - 1)
-    return np.where(patch[at] == dofs, at, -1)
 
 
 def _subdomain_ids(ident) -> list[int] | None:

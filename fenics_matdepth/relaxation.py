@@ -36,8 +36,9 @@ from petsc4py import PETSc
 import numpy as np
 import ufl
 
+from fenics_matdepth._mpi import summed
 from fenics_matdepth.contact.assembly import global_dirichlet_dofs
-from fenics_matdepth.patches import PatchAssembly, summed
+from fenics_matdepth.patches import PatchAssembly
 
 __all__ = ["LocalRelaxation"]
 
@@ -166,7 +167,6 @@ class LocalRelaxation:
         energy = model.energy(x)
         f = model.gradient(x)  # the energy's alone: the rows of F where the bcs are met
         start = np.linalg.norm(f)
-        values = model.values(x)
         iterations, current = 0, True  # current: f is the gradient at x
         try:
             for iterations in range(1, self.iterations + 1):
@@ -184,7 +184,7 @@ class LocalRelaxation:
                 if not slope < 0.0:  # the patch's Newton step climbs: a gradient step instead
                     step = f / np.abs(np.diag(K)).max()
                     slope = -f @ step
-                moved = False
+                values, moved = model.values(x), False
                 for length in 0.5 ** np.arange(BACKTRACKS):
                     x.copy(trial)
                     model.put(trial, values - length * step)
@@ -195,7 +195,6 @@ class LocalRelaxation:
                 if not moved:
                     break
                 trial.copy(x)
-                values = values - length * step
                 energy, current = value, False
             self._assembler.set_state(x)
             admissible = self._assembler.residual(x, F)

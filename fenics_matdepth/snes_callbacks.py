@@ -470,9 +470,9 @@ class SNESCallbacks:
             self._energy_merit_allowed = False
         self._last_norm = norm
         x = snes.getSolution()
+        scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
+        offset = self.assembler.bc_offset(x)
         if self._energy is not None:
-            scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
-            offset = self.assembler.bc_offset(x)
             if iteration == 0:
                 if not self._resuming:
                     self._start_offset = offset
@@ -483,10 +483,7 @@ class SNESCallbacks:
                 offset = 0.0
                 self._last_norm = snes.getFunctionNorm()
             self._bcs_met = offset <= 1e-12 * scale
-            self._step_off_dirichlet = not self._bcs_met
-        elif self.assembler.bcs:
-            scale = max(x.norm(PETSc.NormType.NORM_INFINITY), 1.0)
-            self._step_off_dirichlet = self.assembler.bc_offset(x) > 1e-12 * scale
+        self._step_off_dirichlet = offset > 1e-12 * scale
         if self._relaxation is not None and iteration > 0 and self._relax(snes):
             self._last_norm = snes.getFunctionNorm()
         self._set_state(x)

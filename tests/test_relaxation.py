@@ -15,8 +15,9 @@ import ufl
 from conftest import merged_mesh
 
 import fenics_matdepth as fm
+from fenics_matdepth._mpi import summed
 from fenics_matdepth.meshing import box_tetrahedra
-from fenics_matdepth.patches import PatchModel, summed
+from fenics_matdepth.patches import PatchModel
 
 pytestmark = pytest.mark.filterwarnings("ignore::fenics_matdepth.DepthDeficiencyWarning")
 

@@ -28,7 +28,7 @@ from mpi4py import MPI
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth._mpi import allgather_rows
+from fenics_matdepth._mpi import allgather_rows, positions
 from fenics_matdepth.contact.surface import ContactSurface
 from fenics_matdepth.geometry.boxes import element_boxes
 from fenics_matdepth.geometry.bvh import AABBTree
@@ -116,8 +116,8 @@ class ContinuousCollision:
         nb = self.vertices.size
         # the owned boundary vertices: their local rows and boundary numbers, in gather order
         owned_global = surface.global_vertex[:n_owned]
-        pos = np.minimum(np.searchsorted(self.vertices, owned_global), max(nb - 1, 0))
-        mine = (self.vertices[pos] == owned_global) if nb else np.zeros(n_owned, dtype=bool)
+        pos = positions(self.vertices, owned_global)
+        mine = pos >= 0
         self._owned_rows = np.flatnonzero(mine)
         self._gather_order = allgather_rows(comm, pos[mine].astype(INDEX))
         self.X = np.empty((nb, 3), dtype=FLOAT)

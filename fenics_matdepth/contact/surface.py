@@ -38,7 +38,7 @@ import dolfinx
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth._mpi import allgather_rows
+from fenics_matdepth._mpi import allgather_rows, positions
 from fenics_matdepth.boundary import (
     boundary_triangles,
     face_table,
@@ -347,11 +347,11 @@ class ContactSurface:
 
     def held_index(self, vertices: np.ndarray) -> np.ndarray:
         """Held index of each global vertex number (-1 where this rank does not hold it)."""
-        v = np.asarray(vertices, dtype=INDEX)
-        pos = np.minimum(np.searchsorted(self._sorted, v), max(self._sorted.size - 1, 0))
-        if self._sorted.size == 0:
-            return np.full(v.shape, -1, dtype=INDEX)
-        return np.where(self._sorted[pos] == v, self._order[pos], -1).astype(INDEX)
+        pos = positions(self._sorted, np.asarray(vertices, dtype=INDEX))
+        index = np.full(pos.shape, -1, dtype=INDEX)
+        found = pos >= 0
+        index[found] = self._order[pos[found]]
+        return index
 
     def pull(self, owned: np.ndarray) -> np.ndarray:
         """A per-vertex field over the held vertices, from its owned rows (collective: a
