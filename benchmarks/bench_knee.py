@@ -276,6 +276,9 @@ def main() -> None:
         print(f"  Newton steps begun with a Dirichlet dof off its value: {sum(off)}, "
               f"{sum(off) - attempts} after the first of each of the {attempts} attempts; per "
               f"step {off}")  # fmt: skip
+    if "shift_factorisations" in summary:
+        print(f"  factorisations of shifted Jacobians (J + mu I, every rung tried): "
+              f"{summary['shift_factorisations']}")  # fmt: skip
     lambdas = [it.step_length for s in steps for a in s for it in a.iterations]
     rejected = sum(it.nan_cuts for s in steps for a in s for it in a.iterations)
     print(f"  inadmissible trial states rejected: {rejected}; median step length "

@@ -1246,6 +1246,8 @@ summary = {
     "keep_left_pairs": keep_left,
     "step_limit_edges": step_limit,
     "steps_off_dirichlet": problem.steps_off_dirichlet,
+    # the shifted Newton steps' factorisations (every rung tried), over every solve
+    "shift_factorisations": problem.shift_factorisations,
     "relaxation": None
     if problem.relaxation is None
     else {

@@ -82,6 +82,11 @@ ROUNDING_FLOOR_RTOL = 1e-6
 #: the knee at 90.6 deg (coarse leg): Newton sat at |F| = 3e-2 with one negative pivot and
 #: its step 470 mm long; 1e-6 removed the negative pivot and the energy fell by 0.012 N mm
 #: along the shifted step.
+#: The search starts at the rung the last such step took and goes down while the rungs
+#: qualify, or up until one does: a shift that qualifies keeps qualifying above it (no negative
+#: pivot of J + mu I stays none for a larger mu), so the search ends on the rung a climb from
+#: SHIFT_START would, in about two factorisations where the accepted rung repeats (on the knee
+#: past 141 deg a climb took 2 to 8, 5 on average).
 SHIFT_START = 1e-6
 SHIFT_GROWTH = 10.0
 SHIFT_TRIES = 8
@@ -137,6 +142,10 @@ class SNESCallbacks:
     _step_limit = None
     #: the shift (relative) of the last step kept within the step limit
     _limit_shift = 0.0
+    #: the rung of SHIFT_START's ladder the last step that climbed the energy took
+    _uphill_rung = 0
+    #: factorisations of shifted matrices (the rungs tried by ``_shifted_direction``)
+    shift_factorisations = 0
     #: (matrix, PC type, its shifted copy, the copy's KSP) of _shift_solver, or None
     _shift_kept = None
 
@@ -354,10 +363,11 @@ class SNESCallbacks:
     def _shifted_direction(self, y: PETSc.Vec, limit: float | None = None) -> bool:
         """Overwrite ``y`` with ``(J + mu I)^-1 F`` for the smallest mu of SHIFT_START *
         SHIFT_GROWTH^k (relative to the mean absolute diagonal of J) whose factorisation has no
-        negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective);
-        with a ``limit``, of the ladder of LIMIT_SHIFT_START whose step also moves no entry
-        further than ``limit``. Returns False, leaving ``y``, where the linear solver is not
-        MUMPS or no mu up to the last try gives such a step."""
+        negative pivot (LDL^T; LU: none counted) and whose step goes downhill (collective),
+        searched from the rung the last such step took; with a ``limit``, for the smallest of
+        the ladder from LIMIT_SHIFT_START or the last accepted shift whose step also moves no
+        entry further than ``limit``. Returns False, leaving ``y``, where the linear solver is
+        not MUMPS or no mu up to the last try gives such a step."""
         solver_pc = self.snes.getKSP().getPC()
         if not linear_solver.is_mumps_direct(solver_pc):
             return False
@@ -368,36 +378,60 @@ class SNESCallbacks:
         scale = linear_solver.abs_sum(diagonal) / max(diagonal.getSize(), 1)
         diagonal.destroy()
         B, ksp = self._shift_solver(A, pc_type)
-        trial = y.duplicate()
-        factor = None
-        try:
+        if limit is None:
             start, growth, tries = SHIFT_START, SHIFT_GROWTH, SHIFT_TRIES
-            if limit is not None:
-                start = max(self._limit_shift / LIMIT_SHIFT_BACK, LIMIT_SHIFT_START)
-                growth, tries = LIMIT_SHIFT_GROWTH, LIMIT_SHIFT_TRIES
-            mu, added = start * scale, 0.0
-            for _ in range(tries):
-                B.shift(mu - added)  # the matrix's new state makes the PC factorise again
-                added = mu
-                with self._watch("linear_solve"):
-                    ksp.solve(self._b, trial)
-                factor = ksp.getPC().getFactorMatrix()
-                negative = factor.getMumpsInfog(12) if pc_type == "cholesky" else 0
-                if (
-                    ksp.getConvergedReason() > 0
-                    and negative == 0
-                    and trial.dot(self._b) > 0.0
-                    and (limit is None or trial.norm(PETSc.NormType.NORM_INFINITY) <= limit)
-                ):
-                    if limit is not None:
-                        self._limit_shift = mu / scale
-                    trial.copy(y)
-                    self.shifted_steps += 1
-                    return True
-                mu *= growth
-            return False
-        finally:
+            first = min(self._uphill_rung, tries - 1)
+        else:
+            start = max(self._limit_shift / LIMIT_SHIFT_BACK, LIMIT_SHIFT_START)
+            growth, tries, first = LIMIT_SHIFT_GROWTH, LIMIT_SHIFT_TRIES, 0
+        shifts = [start * scale]
+        for _ in range(tries - 1):
+            shifts.append(shifts[-1] * growth)
+        trial = y.duplicate()
+        shifted = {"by": 0.0}
+
+        def qualifies(k: int) -> bool:
+            """Factorise J + mu_k I, solve for ``trial``: whether its step qualifies."""
+            B.shift(shifts[k] - shifted["by"])  # the matrix's new state: MUMPS factorises again
+            shifted["by"] = shifts[k]
+            with self._watch("linear_solve"):
+                ksp.solve(self._b, trial)
+            self.shift_factorisations += 1
+            factor = ksp.getPC().getFactorMatrix()
+            negative = factor.getMumpsInfog(12) if pc_type == "cholesky" else 0
             del factor  # (a borrowed wrapper: see _shift_solver)
+            return (
+                ksp.getConvergedReason() > 0
+                and negative == 0
+                and trial.dot(self._b) > 0.0
+                and (limit is None or trial.norm(PETSc.NormType.NORM_INFINITY) <= limit)
+            )
+
+        try:
+            taken = None
+            if qualifies(first):
+                taken = first
+                trial.copy(y)
+                for k in range(first - 1, -1, -1):  # down while the rungs qualify
+                    if not qualifies(k):
+                        break
+                    taken = k
+                    trial.copy(y)
+            else:
+                for k in range(first + 1, tries):  # up until one does
+                    if qualifies(k):
+                        taken = k
+                        trial.copy(y)
+                        break
+            if taken is None:
+                return False
+            if limit is None:
+                self._uphill_rung = taken
+            else:
+                self._limit_shift = shifts[taken] / scale
+            self.shifted_steps += 1
+            return True
+        finally:
             trial.destroy()
 
     def _shift_solver(self, A: PETSc.Mat, pc_type: str) -> tuple[PETSc.Mat, PETSc.KSP]:

@@ -685,6 +685,41 @@ def test_newton_steps_that_climb_the_energy_are_shifted_downhill(capfd):
     assert petsc_garbage_entries(mesh.comm, capfd) == 0
 
 
+@pytest.mark.parametrize("start", [0.1, 0.57])
+def test_the_shift_search_ends_on_the_rung_a_climb_from_the_start_takes(start):
+    """Where the Newton step climbs the energy, ``_shifted_direction`` searches the ladder of
+    shifts from the rung the last such step took: down while the rungs qualify, up until one
+    does. From every starting rung it takes the rung a climb from SHIFT_START takes (the double
+    well next to its saddle, where that is the last rung, and near its inflection, where it is
+    one between), the same step, in one factorisation per rung tried: from the rung of the
+    last step, two."""
+    a = 0.1
+    u, problem = _double_well_block(MPI.COMM_WORLD, a)
+    u.x.array[0::3] = start * a
+    x = u.x.petsc_vec.copy()
+    problem.snes.computeFunction(x, problem._b)
+    problem.snes.computeJacobian(x, problem._A)
+    y = x.duplicate()
+    found = []
+    for first in range(snes_callbacks.SHIFT_TRIES):
+        problem._uphill_rung = first
+        before = problem.shift_factorisations
+        assert problem._shifted_direction(y)
+        found.append((problem._uphill_rung, problem.shift_factorisations - before, y.copy()))
+    climbed, climb_count, climb_step = found[0]
+    assert climbed >= 1 and climb_count == climbed + 1  # a climb tries every rung below
+    for first, (rung, count, step) in enumerate(found):
+        assert rung == climbed
+        tried = first - climbed + 1 + (climbed > 0) if first >= climbed else climbed - first + 1
+        assert count == tried
+        assert np.allclose(step.array, climb_step.array, rtol=1e-8, atol=0.0)
+        assert step.dot(problem._b) > 0.0  # downhill
+    assert found[climbed][1] == 2
+    for v in [x, y] + [step for _, _, step in found]:
+        v.destroy()
+    problem.destroy()
+
+
 @pytest.mark.parametrize("limit", [None, 0.02])
 def test_a_step_limit_keeps_each_newton_step_within_it(limit):
     """With ``step_limit`` no Newton step moves a dof further than the limit, and the solve
