@@ -15,7 +15,12 @@ import pytest
 from test_operator import _two_boxes
 
 import fenics_matdepth as fm
-from fenics_matdepth.contact.pairs import candidate_pairs, pair_vertices, pattern_keys
+from fenics_matdepth.contact.pairs import (
+    candidate_pairs,
+    coupling_keys,
+    pair_vertices,
+    pattern_keys,
+)
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
 from fenics_matdepth.geometry import intersection_polygon
 
@@ -101,6 +106,22 @@ def test_pair_vertices_are_the_pairs_elements():
         assert np.array_equal(verts[:, :m], element)
         assert np.array_equal(verts[:, m:], surface.tets[pk])
         assert all(len(set(row)) == m + 4 for row in verts.tolist())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_coupling_keys_are_every_two_vertices_of_a_row(seed):
+    """``coupling_keys`` against the unique of every (row, vi, vj) key written out: rows of 7
+    vertices each within 9 of one another (so that rows share vertices and some repeat one,
+    and many rows couple the same two vertices), up to the last vertex; no rows, none."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    verts = rng.integers(0, n - 8, (300, 1)) + rng.integers(0, 9, (300, 7))  # neighbours
+    verts[0, :] = n - 1
+    expected = np.unique((verts[:, :, None] * n + verts[:, None, :]).ravel())
+    keys = coupling_keys(verts, n)
+    assert keys.dtype == np.int64 and np.array_equal(keys, expected)
+    assert expected.size < 0.9 * n * n  # not simply every coupling
+    assert coupling_keys(np.empty((0, 7), dtype=np.int64), n).size == 0
 
 
 def test_pattern_keys_hold_the_touching_pairs():

@@ -19,7 +19,6 @@ import dolfinx
 import numpy as np
 from numba import njit
 
-from fenics_matdepth._bulk import csr_entries
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels.fastmath import FMA
 from fenics_matdepth.contact.surface import ContactSurface
@@ -488,45 +487,14 @@ def create_matrix(
     # dolfinx.fem.petsc.create_matrix sets them (so that its assemble_matrix can add to A)
     imap = a.function_spaces[0].dofmap.index_map
     bs = a.function_spaces[0].dofmap.index_map_bs
-    r0 = bs * imap.local_range[0]
-    r1 = r0 + bs * imap.size_local
-    _, local_rows, bulk_cols = csr_entries(dolfinx.fem.create_matrix(a))
-    bulk_rows = local_rows + r0
-
-    vi = keys // num_vertices
-    vj = keys % num_vertices
-    # Each vertex coupling (vi, vj) is a 3 x 3 block of dofs.
-    rows = np.repeat(3 * vi[:, None] + np.arange(3), 3, axis=1).ravel()
-    cols = np.tile(3 * vj[:, None] + np.arange(3), (1, 3)).ravel()
-
-    # Send each contact entry to the rank owning its row.
-    ranges = np.asarray(comm.allgather(r1), dtype=INDEX)
-    owner = np.searchsorted(ranges, rows, side="right")
-    order = np.argsort(owner, kind="stable")
-    counts = np.bincount(owner, minlength=comm.size)
-    splits = np.cumsum(counts)[:-1]
-    send = [
-        np.vstack(p)
-        for p in zip(np.split(rows[order], splits), np.split(cols[order], splits), strict=True)
-    ]
-    recv = comm.alltoall(send)
-    all_rows = np.concatenate([bulk_rows] + [m[0] for m in recv])
-    all_cols = np.concatenate([bulk_cols] + [m[1] for m in recv])
-    n_global = 3 * num_vertices
-    key = np.unique(all_rows * n_global + all_cols)
-    rows_u, cols_u = key // n_global, key % n_global
-    if dirichlet is not None:
-        keep = (rows_u == cols_u) | ~(np.isin(rows_u, dirichlet) | np.isin(cols_u, dirichlet))
-        rows_u, cols_u = rows_u[keep], cols_u[keep]
-    csr_ptr = np.searchsorted(rows_u, np.arange(r0, r1 + 1)).astype(PETSc.IntType)
-
+    csr_ptr, cols = _pattern_csr(comm, dolfinx.fem.create_matrix(a), keys, num_vertices, dirichlet)
     held = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
     lgmap = PETSc.LGMap().create(held.astype(PETSc.IntType), bsize=bs, comm=comm)
     A = PETSc.Mat().create(comm=comm)
     size = (bs * imap.size_local, bs * imap.size_global)
     A.setSizes((size, size), bsize=bs)
     A.setType(PETSc.Mat.Type.AIJ)
-    A.setPreallocationCSR((csr_ptr, cols_u.astype(PETSc.IntType)))
+    A.setPreallocationCSR((csr_ptr.astype(PETSc.IntType), cols.astype(PETSc.IntType)))
     A.setLGMap(lgmap, lgmap)
     lgmap.destroy()
     A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
@@ -535,6 +503,57 @@ def create_matrix(
         # assembly with the conditions adds zeros to their rows and columns off the diagonal
         A.setOption(PETSc.Mat.Option.IGNORE_ZERO_ENTRIES, True)
     return A
+
+
+def _pattern_csr(
+    comm: MPI.Comm,
+    csr,
+    keys: np.ndarray,
+    num_vertices: int,
+    dirichlet: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The owned rows' pattern of :func:`create_matrix`: its CSR row pointer (process-local
+    rows) and global columns, from the bulk pattern (``csr``, DOLFINx's blocked MatrixCSR) and
+    the contact vertex couplings ``keys`` (any rank's rows; collective).
+
+    The two are joined as vertex couplings (each a ``bs x bs`` block), one key per block, and
+    only then written out per dof: a ninth of the entries to sort (on a 33.6k-tetrahedron box
+    with 655k contact couplings, 0.17 s where joining the dof entries took 1 s)."""
+    bs = csr.block_size[0]
+    row_map, col_map = csr.index_map(0), csr.index_map(1)
+    b0, b1 = row_map.local_range
+    n_blocks = b1 - b0
+    indptr = np.asarray(csr.indptr[: n_blocks + 1], dtype=INDEX)
+    n_cols = col_map.size_local + col_map.num_ghosts
+    global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
+    bulk_cols = global_block[np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)]
+    bulk_rows = np.repeat(np.arange(b0, b1, dtype=INDEX), np.diff(indptr))
+    # each contact coupling to the rank owning its row
+    keys = np.asarray(keys, dtype=INDEX)
+    ranges = np.asarray(comm.allgather(b1), dtype=INDEX)
+    owner = np.searchsorted(ranges, keys // num_vertices, side="right")
+    order = np.argsort(owner, kind="stable")
+    splits = np.cumsum(np.bincount(owner, minlength=comm.size))[:-1]
+    received = comm.alltoall(np.split(keys[order], splits))
+    blocks = np.unique(np.concatenate([bulk_rows * num_vertices + bulk_cols] + received))
+    # per block row g (its blocks in column order), dof rows bs g .. bs g + bs - 1 each hold
+    # the columns bs c .. bs c + bs - 1 of every block c of the row
+    block_row = blocks // num_vertices - b0
+    per_row = np.bincount(block_row, minlength=n_blocks).astype(INDEX)
+    first = np.concatenate(([0], np.cumsum(per_row)))
+    block_cols = (bs * (blocks % num_vertices)[:, None] + np.arange(bs, dtype=INDEX)).ravel()
+    row_length = np.repeat(bs * per_row, bs)
+    ptr = np.concatenate(([0], np.cumsum(row_length)))
+    row = np.repeat(np.arange(bs * n_blocks, dtype=INDEX), row_length)
+    cols = block_cols[bs * first[row // bs] + np.arange(ptr[-1], dtype=INDEX) - ptr[row]]
+    if dirichlet is None:
+        return ptr, cols
+    rows = row + bs * b0
+    marked = np.zeros(bs * row_map.size_global, dtype=bool)
+    marked[dirichlet] = True
+    keep = (rows == cols) | ~(marked[rows] | marked[cols])
+    kept_per_row = np.bincount(row[keep], minlength=bs * n_blocks)
+    return np.concatenate(([0], np.cumsum(kept_per_row))), cols[keep]
 
 
 def _dirichlet_dofs(bcs, owned_only: bool) -> np.ndarray:

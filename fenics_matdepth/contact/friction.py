@@ -22,7 +22,7 @@ import dolfinx.la
 import numpy as np
 
 from fenics_matdepth._constants import FLOAT, INDEX
-from fenics_matdepth.contact import assembly
+from fenics_matdepth.contact import assembly, pairs
 from fenics_matdepth.contact.fields import contact_fields
 from fenics_matdepth.contact.kernels.friction import (
     empty_reference,
@@ -416,10 +416,8 @@ class FrictionMixin:
         self._cache.pop("friction_positions", None)
         if self._friction_ref is None:
             return keys
-        verts = self._friction_ref.verts
-        a = np.repeat(verts, 7, axis=1).ravel()
-        b = np.tile(verts, (1, 7)).ravel()
-        return np.union1d(keys, a * self.surface.num_vertices + b)
+        friction = pairs.coupling_keys(self._friction_ref.verts, self.surface.num_vertices)
+        return np.union1d(keys, friction)
 
     # -- diagnostics ----------------------------------------------------------------------------
 

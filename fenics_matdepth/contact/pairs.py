@@ -11,6 +11,7 @@ left out by vertex number, which is one-to-one with the global vertex numbers.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse
 
 from fenics_matdepth._constants import INDEX
 from fenics_matdepth.contact.kernels.drivers import intersecting
@@ -22,7 +23,7 @@ from fenics_matdepth.geometry.boxes import (
 )
 from fenics_matdepth.geometry.intersect import near_pairs
 
-__all__ = ["PairSearch", "candidate_pairs", "pair_vertices", "pattern_keys"]
+__all__ = ["PairSearch", "candidate_pairs", "coupling_keys", "pair_vertices", "pattern_keys"]
 
 #: Default skin of the candidate pairs (area integration), in mean boundary edge lengths (see
 #: :attr:`PairSearch.skin`).
@@ -70,10 +71,29 @@ def pattern_keys(surface: ContactSurface, integration: str, margin: float) -> np
         # others would be explicit zeros that the factorisation treats as nonzeros
         pa, pk = near_pairs(surface.x, surface.tri, surface.tets, pa, pk, margin)
     verts = surface.global_vertex[pair_vertices(surface, integration, pa, pk)]
-    n = verts.shape[1]
-    a = np.repeat(verts, n, axis=1).ravel()
-    b = np.tile(verts, (1, n)).ravel()
-    return np.unique(a * surface.num_vertices + b)
+    return coupling_keys(verts, surface.num_vertices)
+
+
+def coupling_keys(verts: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Sorted unique keys ``vi * num_vertices + vj`` of every two vertices (each with itself
+    too) in one row of ``verts`` ((n, m) global vertex numbers below ``num_vertices``).
+
+    As the pattern of ``P^T P``, ``P`` the rows' incidence matrix: SciPy's sparse product
+    marks each row's couplings without sorting them all (on the knee at 144 deg, 0.07 s where
+    the unique of the n m^2 keys took 0.22 s)."""
+    verts = np.asarray(verts, dtype=INDEX)
+    n, m = verts.shape
+    if n == 0:
+        return np.empty(0, dtype=INDEX)
+    rows = np.repeat(np.arange(n, dtype=INDEX), m)
+    # int32 counts: the product sums them, and a sum that wrapped to 0 would drop an entry
+    P = scipy.sparse.csr_matrix(
+        (np.ones(n * m, dtype=np.int32), (rows, verts.ravel())), shape=(n, num_vertices)
+    )
+    G = (P.T @ P).tocsr()
+    G.sort_indices()
+    first = np.repeat(np.arange(num_vertices, dtype=INDEX), np.diff(G.indptr))
+    return first * num_vertices + G.indices.astype(INDEX)
 
 
 class PairSearch:
