@@ -86,7 +86,8 @@ ROUNDING_FLOOR_RTOL = 1e-6
 #: qualify, or up until one does: a shift that qualifies keeps qualifying above it (no negative
 #: pivot of J + mu I stays none for a larger mu), so the search ends on the rung a climb from
 #: SHIFT_START would, in about two factorisations where the accepted rung repeats (on the knee
-#: past 141 deg a climb took 2 to 8, 5 on average).
+#: past 141 deg a climb took 2 to 8, 5 on average). With LU no pivot is counted, only the
+#: downhill test remains, and the search may end on a higher rung than the climb.
 SHIFT_START = 1e-6
 SHIFT_GROWTH = 10.0
 SHIFT_TRIES = 8
