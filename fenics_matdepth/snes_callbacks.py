@@ -389,12 +389,13 @@ class SNESCallbacks:
         for _ in range(tries - 1):
             shifts.append(shifts[-1] * growth)
         trial = y.duplicate()
-        shifted = {"by": 0.0}
+        shifted_by = 0.0  # B holds J + shifted_by I
 
         def qualifies(k: int) -> bool:
             """Factorise J + mu_k I, solve for ``trial``: whether its step qualifies."""
-            B.shift(shifts[k] - shifted["by"])  # the matrix's new state: MUMPS factorises again
-            shifted["by"] = shifts[k]
+            nonlocal shifted_by
+            B.shift(shifts[k] - shifted_by)  # the matrix's new state: MUMPS factorises again
+            shifted_by = shifts[k]
             with self._watch("linear_solve"):
                 ksp.solve(self._b, trial)
             self.shift_factorisations += 1
@@ -409,23 +410,17 @@ class SNESCallbacks:
             )
 
         try:
-            taken = None
-            if qualifies(first):
+            if qualifies(first):  # down while the rungs qualify
                 taken = first
                 trial.copy(y)
-                for k in range(first - 1, -1, -1):  # down while the rungs qualify
-                    if not qualifies(k):
-                        break
-                    taken = k
+                while taken > 0 and qualifies(taken - 1):
+                    taken -= 1
                     trial.copy(y)
-            else:
-                for k in range(first + 1, tries):  # up until one does
-                    if qualifies(k):
-                        taken = k
-                        trial.copy(y)
-                        break
-            if taken is None:
-                return False
+            else:  # up until one does
+                taken = next((k for k in range(first + 1, tries) if qualifies(k)), None)
+                if taken is None:
+                    return False
+                trial.copy(y)
             if limit is None:
                 self._uphill_rung = taken
             else:

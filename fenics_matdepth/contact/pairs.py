@@ -79,8 +79,8 @@ def coupling_keys(verts: np.ndarray, num_vertices: int) -> np.ndarray:
     too) in one row of ``verts`` ((n, m) global vertex numbers below ``num_vertices``).
 
     As the pattern of ``P^T P``, ``P`` the rows' incidence matrix: SciPy's sparse product
-    marks each row's couplings without sorting them all (on the knee at 144 deg, 0.07 s where
-    the unique of the n m^2 keys took 0.22 s)."""
+    marks each row's couplings without sorting them all (on 50k rows of 7 vertices within 60
+    of one another, 0.07 s where the unique of the n m^2 keys took 0.22 s)."""
     verts = np.asarray(verts, dtype=INDEX)
     n, m = verts.shape
     if n == 0:
