@@ -279,6 +279,12 @@ def main() -> None:
     if "shift_factorisations" in summary:
         print(f"  factorisations of shifted Jacobians (J + mu I, every rung tried): "
               f"{summary['shift_factorisations']}")  # fmt: skip
+    if "stalled_steps" in summary:
+        stalled = [
+            round(m["degrees"], 1) for m in summary["steps"] if m.get("pressure_updates_stalled")
+        ]
+        print(f"  steps ended on stalled pressure updates (the overlap left above the "
+              f"tolerance): {summary['stalled_steps']}, at {stalled} deg")  # fmt: skip
     lambdas = [it.step_length for s in steps for a in s for it in a.iterations]
     rejected = sum(it.nan_cuts for s in steps for a in s for it in a.iterations)
     print(f"  inadmissible trial states rejected: {rejected}; median step length "

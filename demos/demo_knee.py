@@ -73,6 +73,7 @@
 # `MATDEPTH_KNEE_AL_TERM` the pressure term (`quadratic`, the default, or `linear`; below),
 # `MATDEPTH_KNEE_AL_MAX_IT` the Newton iterations of one step's augmented-Lagrangian solves
 # together, after which the step is cut (default twice `MATDEPTH_KNEE_MAX_IT`; 0: no limit),
+# `MATDEPTH_KNEE_AL_STALL` the augmented Lagrangian's `stall_rtol` (default 0.1; 0: off; below),
 # `MATDEPTH_KNEE_KEEP_LEFT=1` keeps each contact pair that left in the next Newton iteration's
 # Jacobian (active-set damping; below),
 # `MATDEPTH_KNEE_STEP_LIMIT` the longest move of a vertex coordinate in one Newton step, in
@@ -146,6 +147,7 @@ al_reset = os.environ.get("MATDEPTH_KNEE_AL_RESET", "0") not in ("", "0")
 al_carry = float(os.environ.get("MATDEPTH_KNEE_AL_CARRY", 1.0))
 al_term = os.environ.get("MATDEPTH_KNEE_AL_TERM", "quadratic")
 al_max_it = int(os.environ.get("MATDEPTH_KNEE_AL_MAX_IT", 2 * max_newton))
+al_stall = float(os.environ.get("MATDEPTH_KNEE_AL_STALL", 0.1))
 keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 step_limit = float(os.environ.get("MATDEPTH_KNEE_STEP_LIMIT", 2.0))
 relax = os.environ.get("MATDEPTH_KNEE_RELAX", "1") not in ("", "0")
@@ -530,6 +532,14 @@ elif relax:
 # two updates); where they are spent the step is cut, as after any failed attempt. Without
 # the bound, the step to 144° of an earlier run spent 46 minutes in its updates and in the
 # halvings of the updates whose solves failed (docs/measurements.md).
+#
+# Where an update raised the pressures round a vertex and its overlap stayed above the
+# tolerance, lowered by less than a tenth (`stall_rtol=0.1`), the pressures cannot move it: on
+# one path a triangle of the femur (prescribed) stayed 1.72 tolerances deep in a tetrahedron of
+# the calf's tissue while eleven updates raised the pressures there to 1.0e6 MPa. Such a vertex
+# is held for the rest of the step, its pressure back to its value before that update; the step
+# ends once the overlap elsewhere is within the tolerance (accepted up to twice it,
+# `stall_accept`; beyond, it is cut), and its line says "stalled".
 
 # +
 h_boundary = stats["median_edge"]
@@ -538,7 +548,7 @@ augmented = None
 if al_tol_h > 0.0:
     augmented = fm.AugmentedLagrangian(
         problem, tol_h=al_tol_h, h=h_boundary, pressure_term=al_term,
-        max_iterations=al_max_it or None,
+        max_iterations=al_max_it or None, stall_rtol=al_stall,
     )  # fmt: skip
     solver = augmented
 # -
@@ -924,6 +934,7 @@ def after_step(t: float) -> None:
         m["newton_iterations"] = int(al["newton_iterations"])
         m["pressure_updates"] = int(al["updates"])
         m["max_pressure"] = float(al["max_pressure"])
+        m["pressure_updates_stalled"] = bool(al["stalled"])
         save_pressure(t)
     m["cuts"] = attempts["count"] - 1
     if problem.relaxation is not None:  # the patches relaxed in the step (its cut attempts too)
@@ -956,7 +967,13 @@ def after_step(t: float) -> None:
         f"({fx:+.1f}, {fy:+.1f}, {fz:+.1f}) N, fold skin vertices in contact "
         f"{m['fold_skin_vertices_in_contact']}"
         + (
-            f", {m['pressure_updates']} pressure updates, max pressure {m['max_pressure']:.3f} MPa"
+            f", {m['pressure_updates']} pressure updates"
+            + (
+                " (stalled: the overlap left above the tolerance)"
+                if m["pressure_updates_stalled"]
+                else ""
+            )
+            + f", max pressure {m['max_pressure']:.3f} MPa"
             if augmented is not None
             else ""
         )
@@ -1242,6 +1259,9 @@ summary = {
     "penalty": penalty,
     "augmented_tol_h": al_tol_h,
     "augmented_max_iterations": al_max_it,
+    "augmented_stall_rtol": al_stall,
+    # the steps that ended on stalled pressure updates (their overlap above the tolerance)
+    "stalled_steps": sum(bool(m.get("pressure_updates_stalled")) for m in per_step),
     "fibre_toe": fibre_toe,
     "keep_left_pairs": keep_left,
     "step_limit_edges": step_limit,

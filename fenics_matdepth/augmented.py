@@ -60,6 +60,7 @@ from petsc4py import PETSc
 
 import numpy as np
 
+from fenics_matdepth.contact import diagnostics
 from fenics_matdepth.depth import boundary_triangles
 from fenics_matdepth.results import Solvable, SolveResult
 from fenics_matdepth.tolerances import looser_tolerances
@@ -148,12 +149,39 @@ class AugmentedLagrangian:
             ``"quadratic"`` (``int p g^2 / (2 w) dA`` with ``w = tol / 2``: no kink where a
             face lies flat on the other body, pressures that fall where a contact relaxes;
             for long load paths whose contacts slide and open, see the module's docstring).
+        stall_rtol: a vertex whose pressure an update raised and whose overlap (the deepest
+            point of the penetrating triangles round it) stayed above the tolerance and did
+            not fall below ``1 - stall_rtol`` times its value before the update is *held* for
+            the rest of the solve: its pressure goes back to its value before that update and
+            no later update of the solve raises it (see "Stalled updates" below). 0 (the
+            default): no vertex is held.
+        stall_accept: a solve whose overlap is above the tolerance at held vertices only
+            ends there (``stalled`` True): accepted where the overlap there is at most this
+            many tolerances, failed above it.
+
+    Stalled updates: an update multiplies the pressures round the deepest point by about
+    ``g / w`` (quadratic term) or adds ``omega eps g`` (linear), on the assumption that a
+    stiffer contact lowers ``g``. Where the overlap is held by what the solve cannot move, it
+    does not: on one path of the knee demo a triangle of the femur (prescribed) stayed 1.72
+    tolerances deep in a tetrahedron of the calf's tissue (all four vertices free, on the
+    boundary) while eleven updates raised the pressures there 3.4-fold each, from 67 to 1.0e6
+    MPa. A held vertex keeps its pressure from before the update that did not help (an update
+    may still lower it), and the solve is judged by the overlap elsewhere. The next solve (load
+    step) tries once more: its first update raises the vertex again, and holds it again where
+    that does not help either, so the pressures there do not grow from step to step. (The state
+    a stalled solve ends on was computed with the pressures before they were set back; the next
+    solve starts from it with the pressures set back.)
 
     Attributes:
         tolerance: the overlap accepted (L).
         history: one :class:`UzawaUpdate` per inner solve of the last :meth:`solve`.
         total_updates: pressure updates summed over every :meth:`solve` so far.
         total_newton_iterations: Newton iterations summed over every :meth:`solve` so far.
+        held: (num_vertices,) bool, the vertices the last :meth:`solve` held
+            (``stall_rtol``).
+        stalled: whether the last :meth:`solve` ended with its overlap above the tolerance
+            at held vertices only.
+        total_stalls: the solves so far that ended so, accepted or not.
     """
 
     def __init__(
@@ -167,6 +195,8 @@ class AugmentedLagrangian:
         inner_rtol: float = 1e-6,
         pressure_term: str = "linear",
         max_iterations: int | None = None,
+        stall_rtol: float = 0.0,
+        stall_accept: float = 2.0,
     ):
         contact = problem.contact
         if pressure_term not in ("linear", "quadratic"):
@@ -191,6 +221,12 @@ class AugmentedLagrangian:
         if max_iterations is not None and max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1 or None, got {max_iterations}")
         self.max_iterations = max_iterations
+        if not 0.0 <= stall_rtol < 1.0:
+            raise ValueError(f"stall_rtol must be in [0, 1), got {stall_rtol}")
+        if not stall_accept >= 1.0:
+            raise ValueError(f"stall_accept must be >= 1 (tolerances), got {stall_accept}")
+        self.stall_rtol = float(stall_rtol)
+        self.stall_accept = float(stall_accept)
         if h is None:
             x = boundary_triangles(problem.u.function_space.mesh)
             h = float(np.median(np.linalg.norm(x[:, [1, 2, 0]] - x, axis=2)))
@@ -209,6 +245,11 @@ class AugmentedLagrangian:
         self.history: list[UzawaUpdate] = []
         self.total_updates = 0
         self.total_newton_iterations = 0
+        self.held = np.zeros(contact.num_vertices, dtype=bool)
+        self.stalled = False
+        self.total_stalls = 0
+        self._raised: np.ndarray | None = None  # the vertices the last update raised
+        self._before_update = self.pressure.copy()  # the pressures before it
         self._spent = False  # whether the last solve spent its max_iterations
 
     @property
@@ -239,6 +280,9 @@ class AugmentedLagrangian:
             step = self.contact.penalty * gmom[touched] / amom[touched]
         new = np.zeros_like(self.pressure)
         new[touched] = np.maximum(0.0, self.pressure[touched] + self.relaxation * step)
+        new[self.held] = np.minimum(new[self.held], self.pressure[self.held])
+        self._raised = new > self.pressure
+        self._before_update = self.pressure.copy()
         scale = max(float(np.max(new, initial=0.0)), np.finfo(float).tiny)
         change = float(np.max(np.abs(new - self.pressure), initial=0.0)) / scale
         self.pressure = new
@@ -261,7 +305,10 @@ class AugmentedLagrangian:
             iterations of all inner solves and ``residual_norms`` their histories joined.
         """
         start = self.pressure.copy()
+        self.held = np.zeros_like(self.held)
         self.history = []
+        self._raised = None
+        before = None  # the vertices' overlaps after the last inner solve
         results: list[SolveResult] = []
         converged, reason = False, -1
         result = None
@@ -269,7 +316,7 @@ class AugmentedLagrangian:
         halvings = 0
         k = 0
         first_norm = None
-        self._spent = False
+        self._spent = self.stalled = False
         while True:
             left = None
             if self.max_iterations is not None:
@@ -301,6 +348,17 @@ class AugmentedLagrangian:
             if overlap <= self.tolerance:
                 converged, reason = True, result.reason
                 break
+            if self.stall_rtol > 0.0:
+                before = self._hold_stalled(before)
+                elsewhere = float(np.max(before[~self.held], initial=0.0))
+                if self.held.any() and elsewhere <= self.tolerance:
+                    self.stalled = True
+                    self.total_stalls += 1
+                    if overlap <= self.stall_accept * self.tolerance:
+                        converged, reason = True, result.reason
+                    else:
+                        reason = 0
+                    break
             if k == self.max_updates:
                 reason = 0  # every inner solve converged, the overlap did not
                 break
@@ -317,6 +375,29 @@ class AugmentedLagrangian:
                 raise RuntimeError(self.failure_message(out))
         return out
 
+    def _vertex_overlaps(self) -> np.ndarray:
+        """Per vertex, the deepest point reached by the penetrating boundary triangles round
+        it (L; 0 elsewhere; global numbering, collective): ``peak_pressure`` at unit
+        stiffness."""
+        g, pair_a, _ = self.contact.pair_depths()
+        return diagnostics.peak_pressure(self.contact.surface, g, pair_a, 1.0, None, 0.0)
+
+    def _hold_stalled(self, before: np.ndarray | None) -> np.ndarray:
+        """Hold the vertices the last update raised whose overlap stayed above the tolerance
+        and fell by less than ``stall_rtol`` since ``before`` (the overlaps after the solve
+        before that update), their pressures back to their values before it; returns the
+        overlaps now."""
+        now = self._vertex_overlaps()
+        if before is not None and self._raised is not None:
+            stuck = (now > self.tolerance) & (now >= (1.0 - self.stall_rtol) * before)
+            newly = self._raised & stuck & ~self.held
+            if newly.any():  # the update did not help there: undone
+                pressure = self.pressure.copy()
+                pressure[newly] = self._before_update[newly]
+                self.pressure = pressure
+                self.held |= newly
+        return now
+
     def failure_message(self, result: SolveResult) -> str:
         """Why :meth:`solve` failed."""
         if self._spent:
@@ -326,6 +407,15 @@ class AugmentedLagrangian:
                 "last residual norms: "
                 + ", ".join(f"{r:.3e}" for r in result.residual_norms[-5:])
                 + ". Reduce the load step (solve_load_steps cuts it automatically)"
+            )
+        if result.reason == 0 and self.stalled:
+            return (
+                f"augmented Lagrangian: the overlap {self.history[-1].overlap_tol:.3f} "
+                f"tolerances at vertices whose pressure updates stalled (held: raising their "
+                f"pressures did not lower it), above stall_accept = {self.stall_accept:g}: "
+                "the pressures cannot move the deepest point (a surface prescribed into a "
+                "body held there?); reduce the load step (solve_load_steps cuts it "
+                "automatically)"
             )
         if result.reason == 0:
             last = self.history[-1]
@@ -339,7 +429,8 @@ class AugmentedLagrangian:
     def diagnostics(self) -> dict[str, typing.Any]:
         """The last solve: ``updates`` (pressure updates), ``newton_iterations`` (all inner
         solves), ``overlap`` (L), ``overlap_h`` and ``overlap_tol`` (relative to h and to the
-        tolerance), ``max_pressure`` and the last ``pressure_change`` (relative)."""
+        tolerance), ``max_pressure``, the last ``pressure_change`` (relative), whether the
+        solve ended ``stalled`` and how many vertices are held (``held_vertices``)."""
         if not self.history:
             return {}
         last = self.history[-1]
@@ -351,6 +442,8 @@ class AugmentedLagrangian:
             "overlap_tol": last.overlap_tol,
             "max_pressure": float(np.max(self.pressure, initial=0.0)),
             "pressure_change": self.history[-2].pressure_change if len(self.history) > 1 else 0.0,
+            "stalled": self.stalled,
+            "held_vertices": int(np.count_nonzero(self.held)),
         }
 
 

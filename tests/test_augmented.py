@@ -8,13 +8,17 @@ import types
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import dolfinx
 import numpy as np
 import pytest
+import ufl
 from conftest import assert_fd_derivatives
 from test_kernels import polygon_mu, random_configs, split
-from test_validation import PATCH_PRESSURE, _report, _solve_patch
+from test_validation import PATCH_PRESSURE, _hyperelastic_energy, _report, _solve_patch
 
+import fenics_matdepth as fm
 from fenics_matdepth import AugmentedLagrangian
+from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact.kernels import (
     augmented_pair_energy,
     pair_energy,
@@ -23,6 +27,7 @@ from fenics_matdepth.contact.kernels import (
 from fenics_matdepth.geometry.clip import (
     clip_shift,
 )
+from fenics_matdepth.meshing import box_tetrahedra
 from fenics_matdepth.tolerances import looser_tolerances
 
 EPS = 3.0
@@ -353,3 +358,93 @@ def test_looser_tolerances_lowers_the_iteration_limit_and_restores_it():
     with looser_tolerances(holder, None, 1e-6, 20):
         assert (newton.rtol, newton.atol, newton.max_it) == (1e-8, 1e-6, 20)
     assert (newton.rtol, newton.atol, newton.max_it) == (1e-8, 1e-10, 50)
+
+
+def _locked_press(sink: float, **augmented) -> AugmentedLagrangian:
+    """Two unit cubes (3 x 3 x 3 boxes of tetrahedra), the upper one prescribed ``sink`` into
+    the lower one (``solver.sink``, a Constant), which is held but for the interior vertices
+    of its top face: the deepest point sits at the held rim, where no pressure can move it
+    (the overlap is ``sink``). Returns the augmented Lagrangian (tolerance 0.01, quadratic
+    term) after one solve (``solver.result``)."""
+    comm = MPI.COMM_WORLD
+    x_lower, c_lower = box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    x_upper, c_upper = box_tetrahedra(3, (0.0, 0.0, 1.0), (1.0, 1.0, 1.0))
+    mesh = create_tetrahedral_mesh(
+        comm, np.vstack((c_lower, c_upper + x_lower.shape[0])), np.vstack((x_lower, x_upper))
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    energy = _hyperelastic_energy(u, ufl.dx, [(ufl.dx, (1.0, 0.3))])
+    cmap = mesh.topology.index_map(3)
+    cells = np.arange(cmap.size_local + cmap.num_ghosts, dtype=np.int32)
+    upper_cell = dolfinx.mesh.compute_midpoints(mesh, 3, cells)[:, 2] > 1.0
+    blocks = np.asarray(V.dofmap.list)[cells]
+    upper = np.unique(blocks[upper_cell].ravel())
+    lower = np.setdiff1d(np.unique(blocks[~upper_cell].ravel()), upper)
+    at = V.tabulate_dof_coordinates()[lower]
+    inside = (at[:, :2] > 1e-9) & (at[:, :2] < 1.0 - 1e-9)
+    top_interior = np.isclose(at[:, 2], 1.0) & inside.all(axis=1)
+    value = dolfinx.fem.Constant(mesh, np.array([0.0, 0.0, -sink]))
+    bcs = [
+        dolfinx.fem.dirichletbc(value, upper.astype(np.int32), V),
+        dolfinx.fem.dirichletbc(np.zeros(3), lower[~top_interior].astype(np.int32), V),
+    ]
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=10.0)
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    problem = fm.ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    solver = AugmentedLagrangian(problem, tol=0.01, pressure_term="quadratic", **augmented)
+    solver.sink = value
+    solver.result = solver.solve(raise_on_failure=False)
+    return solver
+
+
+def test_stalled_updates_hold_their_vertices():
+    """An overlap no pressure can move (``_locked_press``): without ``stall_rtol`` the updates
+    raise the pressures there about ``g / w`` = 3-fold each, up to ``max_updates``, and the
+    solve fails. With it, the vertices the first update raised in vain are held, their
+    pressures back to their values before it: the solve ends there, accepted within
+    ``stall_accept`` tolerances. The next solve tries once more and holds them again, so the
+    pressures do not grow from solve to solve; once the overlap is within the tolerance nothing
+    is held. Above ``stall_accept`` the solve fails (the pressures restored). Where the
+    pressures do move the overlap (the patch test) nothing is held."""
+    plain = _locked_press(0.015, max_updates=6)
+    overlaps = [r.overlap_tol for r in plain.history]
+    pressures = [r.max_pressure for r in plain.history]
+    _report(f"\nlocked overlap, no stall test: overlaps {overlaps} tol, pressures {pressures}")
+    assert not plain.result.converged and not plain.stalled and not plain.held.any()
+    assert len(plain.history) == 7 and np.allclose(overlaps, 1.5, rtol=1e-6)
+    assert pressures[-1] > 2.5**4 * pressures[2] > 0.0  # geometric growth, g / w = 3
+
+    held = _locked_press(0.015, max_updates=6, stall_rtol=0.1)
+    diag = held.diagnostics()
+    _report(f"with stall_rtol 0.1: {[r.overlap_tol for r in held.history]} tol, {diag}")
+    assert held.result.converged and held.stalled and held.total_stalls == 1
+    assert len(held.history) == 2 and held.history[1].max_pressure > 0.0  # one update, in vain
+    assert diag["stalled"] and diag["held_vertices"] == np.count_nonzero(held.held) > 0
+    assert np.all(held.pressure[held.held] == 0.0)  # undone: the pressures before it
+    assert held.contact.max_penetration() == pytest.approx(0.015, rel=1e-6)
+    first = held.pressure.copy()
+    for _ in range(2):  # the next load steps, the overlap still held there
+        assert held.solve().converged and held.stalled and len(held.history) == 2
+        assert np.array_equal(held.pressure, first)
+    assert held.total_stalls == 3
+    held.sink.value[:] = (0.0, 0.0, -0.005)  # half the tolerance
+    held.solve()
+    assert not held.stalled and not held.held.any()
+    assert held.contact.max_penetration() <= 0.01
+
+    # where the pressures do move the overlap (the patch test, linear term: it halves at each
+    # update) nothing is held
+    tol = 0.1 * PATCH_PRESSURE / (2.0 * 10.0)
+    moving = _solve_patch(10.0, augmented={"tol": tol, "max_updates": 10, "stall_rtol": 0.1})
+    assert not moving["solver"].held.any() and moving["solver"].diagnostics()["updates"] >= 3
+    assert moving["contact"].max_penetration() <= tol
+
+    beyond = _locked_press(0.03, max_updates=6, stall_rtol=0.1)  # 3 tolerances: not accepted
+    assert not beyond.result.converged and beyond.stalled and len(beyond.history) == 2
+    assert np.all(beyond.pressure == 0.0)  # restored
+    assert "stalled" in beyond.failure_message(beyond.result)
+    with pytest.raises(ValueError, match="stall_rtol"):
+        AugmentedLagrangian(beyond.problem, tol=0.01, stall_rtol=1.0)
+    with pytest.raises(ValueError, match="stall_accept"):
+        AugmentedLagrangian(beyond.problem, tol=0.01, stall_accept=0.5)

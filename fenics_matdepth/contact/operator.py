@@ -546,7 +546,7 @@ class ContactOperator(FrictionMixin):
         pressure term, see :meth:`set_pressure`), at the last update; 0 where no triangle
         penetrates (collective; global vertex numbering, the same on every rank). The update of
         the quadratic pressure term (area integration)."""
-        g, pair_a, _ = self._pair_depths()
+        g, pair_a, _ = self.pair_depths()
         return diagnostics.peak_pressure(
             self.surface, g, pair_a, self.penalty, self._pressure, self._pressure_width
         )
@@ -560,7 +560,7 @@ class ContactOperator(FrictionMixin):
         the maximum of ``g_K(x_a)`` over the boundary vertices inside a tetrahedron
         (collective).
         """
-        return diagnostics.max_penetration(self.surface, self._pair_depths()[0])
+        return diagnostics.max_penetration(self.surface, self.pair_depths()[0])
 
     def vertex_penetration(self) -> np.ndarray:
         """Material depth reached by each boundary vertex at the last update (collective).
@@ -583,7 +583,7 @@ class ContactOperator(FrictionMixin):
         """
         return diagnostics.vertex_penetration(self.surface, self.integration)
 
-    def _pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This rank's evaluated pairs with their deepest material depth at the last update:
         ``(g, pair_a, pair_k)`` (see :func:`diagnostics.pair_depths`)."""
         energy = self._evaluate(False, False)["energy"]
@@ -607,7 +607,7 @@ class ContactOperator(FrictionMixin):
         - ``local_h``: the mean reference edge length of the triangle, the local element size
           to judge the depth by (L; None for collocation).
         """
-        g, pair_a, pair_k = self._pair_depths()
+        g, pair_a, pair_k = self.pair_depths()
         return diagnostics.deepest_contact(self.surface, self.integration, g, pair_a, pair_k)
 
     def force_resultants(self) -> np.ndarray:
