@@ -585,7 +585,7 @@ class ContactOperator(FrictionMixin):
 
     def pair_depths(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """This rank's evaluated pairs with their deepest material depth at the last update:
-        ``(g, pair_a, pair_k)`` (see :func:`diagnostics.pair_depths`)."""
+        ``(g, pair_a, pair_k)`` (``contact.diagnostics.pair_depths``)."""
         energy = self._evaluate(False, False)["energy"]
         pair_a, pair_k = self._evaluated_pairs()
         g = diagnostics.pair_depths(
