@@ -958,6 +958,14 @@ def after_step(t: float) -> None:
         add_frame(grid)
     fx, fy, fz = m["patella_contact_force"]
     dx_, dy_, dz_ = m["patella_displacement"]
+    stalled = " (stalled: the overlap left above the tolerance)"
+    pressures = (
+        f", {m['pressure_updates']} pressure updates"
+        f"{stalled if m['pressure_updates_stalled'] else ''}, max pressure "
+        f"{m['max_pressure']:.3f} MPa"
+        if augmented is not None
+        else ""
+    )
     report(
         f"    {m['degrees']:6.1f} deg: penetration/h {m['penetration_over_h']:.3f}, "
         f"min det F {m['min_det_F']:.3f} ({m['min_det_F_body']} at "
@@ -965,18 +973,7 @@ def after_step(t: float) -> None:
         f"patella moved ({dx_:+.1f}, {dy_:+.1f}, {dz_:+.1f}) mm "
         f"turned {m['patella_rotation_degrees']:+.1f} deg, patella contact force "
         f"({fx:+.1f}, {fy:+.1f}, {fz:+.1f}) N, fold skin vertices in contact "
-        f"{m['fold_skin_vertices_in_contact']}"
-        + (
-            f", {m['pressure_updates']} pressure updates"
-            + (
-                " (stalled: the overlap left above the tolerance)"
-                if m["pressure_updates_stalled"]
-                else ""
-            )
-            + f", max pressure {m['max_pressure']:.3f} MPa"
-            if augmented is not None
-            else ""
-        )
+        f"{m['fold_skin_vertices_in_contact']}{pressures}"
         + (
             f", friction: {m['friction']['stick_points']:.0f} stick / "
             f"{m['friction']['slip_points']:.0f} slip points, dissipated "

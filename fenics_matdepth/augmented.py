@@ -248,8 +248,7 @@ class AugmentedLagrangian:
         self.held = np.zeros(contact.num_vertices, dtype=bool)
         self.stalled = False
         self.total_stalls = 0
-        self._raised: np.ndarray | None = None  # the vertices the last update raised
-        self._before_update = self.pressure.copy()  # the pressures before it
+        self._before_update = self.pressure.copy()  # the pressures before the last update
         self._spent = False  # whether the last solve spent its max_iterations
 
     @property
@@ -281,7 +280,6 @@ class AugmentedLagrangian:
         new = np.zeros_like(self.pressure)
         new[touched] = np.maximum(0.0, self.pressure[touched] + self.relaxation * step)
         new[self.held] = np.minimum(new[self.held], self.pressure[self.held])
-        self._raised = new > self.pressure
         self._before_update = self.pressure.copy()
         scale = max(float(np.max(new, initial=0.0)), np.finfo(float).tiny)
         change = float(np.max(np.abs(new - self.pressure), initial=0.0)) / scale
@@ -307,7 +305,6 @@ class AugmentedLagrangian:
         start = self.pressure.copy()
         self.held = np.zeros_like(self.held)
         self.history = []
-        self._raised = None
         before = None  # the vertices' overlaps after the last inner solve
         results: list[SolveResult] = []
         converged, reason = False, -1
@@ -388,9 +385,10 @@ class AugmentedLagrangian:
         before that update), their pressures back to their values before it; returns the
         overlaps now."""
         now = self._vertex_overlaps()
-        if before is not None and self._raised is not None:
+        if before is not None:  # an update came between: the vertices it raised
+            raised = self.pressure > self._before_update
             stuck = (now > self.tolerance) & (now >= (1.0 - self.stall_rtol) * before)
-            newly = self._raised & stuck & ~self.held
+            newly = raised & stuck & ~self.held
             if newly.any():  # the update did not help there: undone
                 pressure = self.pressure.copy()
                 pressure[newly] = self._before_update[newly]
