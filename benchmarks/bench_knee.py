@@ -279,6 +279,9 @@ def main() -> None:
     if "shift_factorisations" in summary:
         print(f"  factorisations of shifted Jacobians (J + mu I, every rung tried): "
               f"{summary['shift_factorisations']}")  # fmt: skip
+    if "reversed_steps" in summary:
+        print(f"  Newton steps reversed at a saddle (uphill_step {summary['uphill_step']}): "
+              f"{summary['reversed_steps']}")  # fmt: skip
     if "stalled_steps" in summary:
         stalled = [
             round(m["degrees"], 1) for m in summary["steps"] if m.get("pressure_updates_stalled")

@@ -78,6 +78,8 @@
 # Jacobian (active-set damping; below),
 # `MATDEPTH_KNEE_STEP_LIMIT` the longest move of a vertex coordinate in one Newton step, in
 # median boundary edges (default 2; 0: no limit; below),
+# `MATDEPTH_KNEE_UPHILL` how a Newton step that climbs the energy is replaced (`reverse`, the
+# default, or `shift`; below),
 # `MATDEPTH_KNEE_RELAX=0` turns off the relaxation of a concentrated residual before each Newton
 # step (below),
 # `MATDEPTH_KNEE_FRICTION=1` adds Coulomb friction, bone on bone 0.01 and skin on skin 0.5
@@ -150,6 +152,7 @@ al_max_it = int(os.environ.get("MATDEPTH_KNEE_AL_MAX_IT", 2 * max_newton))
 al_stall = float(os.environ.get("MATDEPTH_KNEE_AL_STALL", 0.1))
 keep_left = os.environ.get("MATDEPTH_KNEE_KEEP_LEFT", "0") not in ("", "0")
 step_limit = float(os.environ.get("MATDEPTH_KNEE_STEP_LIMIT", 2.0))
+uphill_step = os.environ.get("MATDEPTH_KNEE_UPHILL", "reverse")
 relax = os.environ.get("MATDEPTH_KNEE_RELAX", "1") not in ("", "0")
 resume = "--resume" in sys.argv or os.environ.get("MATDEPTH_KNEE_RESUME", "0") not in ("", "0")
 try:
@@ -494,6 +497,13 @@ if pseudo_transient > 0.0:
 # 150 deg in five runs, against 1,153 to 1,384 without it (docs/measurements.md)
 if step_limit > 0.0:
     problem.step_limit = step_limit * stats["median_edge"]
+# MATDEPTH_KNEE_UPHILL: near a saddle of the energy (the fold's tissue about to buckle one way
+# or the other) the Newton step climbs the energy. Reversed (the default), it is a direction
+# of negative curvature and leaves the saddle in a few iterations; shifted (J + mu I, the
+# library's default), solves crept at |F| of 0.01 to 0.1 N for up to 31 iterations, and 150
+# deg took 525 to 751 Newton iterations on four paths (mean 609) against 554 to 640 reversed
+# (mean 594), with no solve creeping (ContactProblem.uphill_step; docs/measurements.md)
+problem.uphill_step = uphill_step
 # Before each Newton step, where a few vertices hold most of the residual, their patch is
 # brought to equilibrium with the rest of the leg held (fm.LocalRelaxation; off with friction,
 # which a patch leaves out). Past 100 deg the residual sits on two or three vertices behind the
@@ -1262,6 +1272,9 @@ summary = {
     "fibre_toe": fibre_toe,
     "keep_left_pairs": keep_left,
     "step_limit_edges": step_limit,
+    "uphill_step": uphill_step,
+    # the Newton steps reversed at a saddle, over every solve
+    "reversed_steps": problem.reversed_steps,
     "steps_off_dirichlet": problem.steps_off_dirichlet,
     # the shifted Newton steps' factorisations (every rung tried), over every solve
     "shift_factorisations": problem.shift_factorisations,

@@ -3,9 +3,9 @@
 SNES calls them during a solve: the residual and Jacobian (through the problem's
 :class:`~fenics_matdepth.SystemAssembler`), the merit function of the line search
 (the total energy, or ``|F|^2 / 2``), the convergence test, the line-search pre-check that
-replaces a step climbing the energy by the step of a shifted Jacobian, and the start of each
-Newton iteration (the merit function's hand-over, the matrix's rebuild, whether the coming
-Jacobian is factorised or solved on the kept factorisation). They form
+replaces a step climbing the energy by the step of a shifted Jacobian (or reverses it), and
+the start of each Newton iteration (the merit function's hand-over, the matrix's rebuild,
+whether the coming Jacobian is factorised or solved on the kept factorisation). They form
 :class:`SNESCallbacks`, a base class of ``ContactProblem``, whose ``__init__`` and ``solve``
 set up the state they read.
 """
@@ -36,6 +36,7 @@ __all__ = [
     "SHIFT_GROWTH",
     "SHIFT_START",
     "SHIFT_TRIES",
+    "UPHILL_STEPS",
     "SLOW_CONVERGENCE_REASON",
     "STALL_RTOL",
     "SNESCallbacks",
@@ -92,6 +93,11 @@ SHIFT_START = 1e-6
 SHIFT_GROWTH = 10.0
 SHIFT_TRIES = 8
 
+#: The values of ``SNESCallbacks.uphill_step``: how a Newton step that climbs the energy is
+#: replaced ("shift": the step of J + mu I above; "reverse": the Newton step reversed, a
+#: direction of negative curvature).
+UPHILL_STEPS = ("shift", "reverse")
+
 #: With a ``step_limit`` (SNESCallbacks.step_limit), a Newton step moving a degree of freedom
 #: further is replaced by the step of ``J + mu I``, mu (relative to the mean absolute diagonal
 #: of J, as above) starting at the last accepted one divided by LIMIT_SHIFT_BACK (at first
@@ -147,6 +153,9 @@ class SNESCallbacks:
     _uphill_rung = 0
     #: factorisations of shifted matrices (the rungs tried by ``_shifted_direction``)
     shift_factorisations = 0
+    _uphill_step = "shift"
+    #: Newton steps reversed at a saddle (``uphill_step = "reverse"``), since the problem was made
+    reversed_steps = 0
     #: (matrix, PC type, its shifted copy, the copy's KSP) of _shift_solver, or None
     _shift_kept = None
 
@@ -218,6 +227,38 @@ class SNESCallbacks:
         if value is not None and not (np.isfinite(value) and value > 0.0):
             raise ValueError(f"step_limit is None or a positive finite length, got {value!r}")
         self._step_limit = None if value is None else float(value)
+
+    @property
+    def uphill_step(self) -> str:
+        """How a Newton step ``y`` that climbs the energy (``F . y < 0``: the Jacobian is
+        indefinite, the iterate near a saddle of the energy) is replaced once the Dirichlet
+        dofs hold their values; the energy's line search then judges the new step.
+
+        - ``"shift"`` (the default): the step of ``J + mu I``, mu the smallest of a ladder of
+          shifts (SHIFT_START) whose factorisation has no negative pivot; a direct MUMPS
+          solver only (otherwise the step stays). Counted in ``shifted_steps``.
+        - ``"reverse"``: the Newton step reversed, ``-y``, scaled down to ``step_limit`` where
+          it is longer. Along it the energy's slope ``-F . y`` and its curvature
+          ``y . J y = F . y`` are both negative: the quadratic model falls without bound, so
+          the step leaves the saddle (a direction of negative curvature, as trust-region
+          methods take there), with no factorisation and any linear solver. Near a saddle the
+          shifted step moves off it slowly: its mu exceeds the negative eigenvalue, and the
+          component along that eigenvector grows by ``mu / (mu - |lambda|)`` an iteration
+          (on the knee's 751-iteration path, four solves crept at ``|F|`` of 0.01 to 0.1 N
+          for 18 to 31 iterations each, on shifted steps of mu = the mean diagonal).
+          Counted in ``reversed_steps``. Opt-in; the knee demo sets it: 554 to 640 Newton
+          iterations to 150 deg on four paths against 525 to 751 (docs/measurements.md).
+
+        Raises:
+            ValueError: if set to anything but one of ``UPHILL_STEPS``.
+        """
+        return self._uphill_step
+
+    @uphill_step.setter
+    def uphill_step(self, value: str) -> None:
+        if value not in UPHILL_STEPS:
+            raise ValueError(f"uphill_step is one of {UPHILL_STEPS}, got {value!r}")
+        self._uphill_step = value
 
     def _set_state(self, x: PETSc.Vec) -> None:
         self.assembler.set_state(x)
@@ -337,13 +378,19 @@ class SNESCallbacks:
         overlaps; an iterate near a saddle of the energy), ``F . y`` can be negative: the
         Newton step climbs the energy and no step length decreases it. With the Dirichlet dofs
         on their values and a direct solver, that step is replaced by the step of ``J + mu I``
-        (``_shifted_direction``), which goes downhill and is judged by the energy; otherwise it
+        (``_shifted_direction``), which goes downhill and is judged by the energy, or with
+        ``uphill_step = "reverse"`` (any solver) by ``-y`` (``_reverse_direction``); otherwise it
         is judged by ``|F|^2 / 2``, which the Newton step always decreases for small enough
         steps. The same holds while the step still moves Dirichlet dofs onto their values:
         prescribing a displacement raises the energy, so only the residual norm can judge that
         step. Returns whether ``y`` was changed.
         """
-        downhill = y.dot(self._b) > 0.0
+        slope = y.dot(self._b)
+        downhill = slope > 0.0
+        if slope < 0.0 and self._bcs_met and self._uphill_step == "reverse":
+            self._reverse_direction(y)
+            self._merit_is_energy = True
+            return True
         if not downhill and self._bcs_met and self._shifted_direction(y):
             self._merit_is_energy = True
             return True
@@ -360,6 +407,17 @@ class SNESCallbacks:
             return True
         self._merit_is_energy = self._energy_merit_allowed and self._bcs_met and downhill
         return False
+
+    def _reverse_direction(self, y: PETSc.Vec) -> None:
+        """Reverse the climbing Newton step ``y`` (``uphill_step = "reverse"``), scaled down to
+        the step limit where it moves a dof further (collective)."""
+        y.scale(-1.0)
+        limit = self._step_limit
+        if limit is not None:
+            size = y.norm(PETSc.NormType.NORM_INFINITY)
+            if size > limit:
+                y.scale(limit / size)
+        self.reversed_steps += 1
 
     def _shifted_direction(self, y: PETSc.Vec, limit: float | None = None) -> bool:
         """Overwrite ``y`` with ``(J + mu I)^-1 F`` for the smallest mu of SHIFT_START *

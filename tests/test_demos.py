@@ -173,6 +173,8 @@ def _knee_claims(output: Path) -> None:
     # each step (its rotation comes in through it)
     off = [step["steps_off_dirichlet"] for step in steps]
     assert sum(off) == summary["steps_off_dirichlet"] and min(off) >= 1, off
+    # a Newton step that climbs the energy is reversed (ContactProblem.uphill_step)
+    assert summary["uphill_step"] == "reverse" and summary["reversed_steps"] >= 0, summary
     with np.load(output / "knee_checkpoint.npz") as checkpoint:
         meta = json.loads(str(checkpoint["meta"]))
         assert meta["steps"] == len(steps) and meta["load"] == pytest.approx(1.0), meta
