@@ -795,19 +795,7 @@ def test_a_step_limit_keeps_each_newton_step_within_it(limit):
     u, problem = _double_well_block(MPI.COMM_WORLD, a)
     problem.step_limit = limit
     u.x.array[0::3] = 3.0 * a
-    moves = []
-    last = u.x.petsc_vec.copy()
-
-    def monitor(snes, k, fnorm):
-        x = snes.getSolution()
-        if k > 0:
-            last.axpy(-1.0, x)
-            moves.append(last.norm(PETSc.NormType.NORM_INFINITY))
-        x.copy(last)
-
-    problem.snes.setMonitor(monitor)
-    result = problem.solve()
-    last.destroy()
+    result, moves = _solve_recording_moves(problem)
     assert result.converged
     assert np.allclose(u.x.array[0::3], a, rtol=1e-8)
     assert np.allclose(u.x.array.reshape(-1, 3)[:, 1:], 0.0, atol=1e-9)
