@@ -245,7 +245,8 @@ class SNESCallbacks:
           shifted step moves off it slowly: its mu exceeds the negative eigenvalue, and the
           component along that eigenvector grows by ``mu / (mu - |lambda|)`` an iteration
           (on the knee's 751-iteration path, four solves crept at ``|F|`` of 0.01 to 0.1 N
-          for 18 to 31 iterations each, on shifted steps of mu = the mean diagonal).
+          for 18 to 31 iterations each; the one instrumented, on shifted steps of mu = the
+          mean diagonal).
           Counted in ``reversed_steps``. Opt-in; the knee demo sets it: 554 to 640 Newton
           iterations to 150 deg on four paths against 525 to 751 (docs/measurements.md).
 
@@ -379,7 +380,7 @@ class SNESCallbacks:
         Newton step climbs the energy and no step length decreases it. With the Dirichlet dofs
         on their values and a direct solver, that step is replaced by the step of ``J + mu I``
         (``_shifted_direction``), which goes downhill and is judged by the energy, or with
-        ``uphill_step = "reverse"`` (any solver) by ``-y`` (``_reverse_direction``); otherwise it
+        ``uphill_step = "reverse"`` (any solver) by ``-y`` (``_uphill_direction``); otherwise it
         is judged by ``|F|^2 / 2``, which the Newton step always decreases for small enough
         steps. The same holds while the step still moves Dirichlet dofs onto their values:
         prescribing a displacement raises the energy, so only the residual norm can judge that
@@ -387,11 +388,7 @@ class SNESCallbacks:
         """
         slope = y.dot(self._b)
         downhill = slope > 0.0
-        if slope < 0.0 and self._bcs_met and self._uphill_step == "reverse":
-            self._reverse_direction(y)
-            self._merit_is_energy = True
-            return True
-        if not downhill and self._bcs_met and self._shifted_direction(y):
+        if not downhill and self._bcs_met and self._uphill_direction(y, slope):
             self._merit_is_energy = True
             return True
         limit = self._step_limit
@@ -407,6 +404,15 @@ class SNESCallbacks:
             return True
         self._merit_is_energy = self._energy_merit_allowed and self._bcs_met and downhill
         return False
+
+    def _uphill_direction(self, y: PETSc.Vec, slope: float) -> bool:
+        """Replace the Newton step ``y`` that does not go downhill (``slope = F . y <= 0``) as
+        ``uphill_step`` says: reversed where it climbs, else (and at a zero slope) shifted.
+        Returns whether ``y`` was replaced (collective)."""
+        if self._uphill_step == "reverse" and slope < 0.0:
+            self._reverse_direction(y)
+            return True
+        return self._shifted_direction(y)
 
     def _reverse_direction(self, y: PETSc.Vec) -> None:
         """Reverse the climbing Newton step ``y`` (``uphill_step = "reverse"``), scaled down to
