@@ -47,6 +47,7 @@ ITERATION = re.compile(r"^\s*(\d+) SNES Function norm\s+(\S+)")
 LAMBDA = re.compile(r"(?<![a-z])lambda=\s*([^\s,]+)")
 STEP = re.compile(r"^step\s+(\d+)\s+load\s+(\S+)\s+newton\s+(\d+) it")
 FAILED = re.compile(r"the step to .* deg failed")
+LINEAR_ITERATIONS = re.compile(r"Linear .* solve did not converge due to \S+ iterations (\d+)")
 
 
 @dataclasses.dataclass
@@ -66,6 +67,7 @@ class Attempt:
 
     iterations: list[Iteration] = dataclasses.field(default_factory=list)
     linear_failures: int = 0
+    linear_failed_iterations: int = 0  # the GMRES iterations of those failed linear solves
     converged: bool = False
     stopped_early: bool = False  # by the step control's rate test (reason DIVERGED_DTOL)
 
@@ -103,6 +105,8 @@ def parse(lines: list[str]) -> list[list[Attempt]]:
             current.step_length = float(LAMBDA.search(line).group(1))
         elif "did not converge" in line and "Linear" in line:
             attempts[-1].linear_failures += 1
+            gmres = LINEAR_ITERATIONS.search(line)
+            attempts[-1].linear_failed_iterations += int(gmres.group(1)) if gmres else 0
             after_linear_failure = True
             current = None  # the solve restarts from this iterate: no Newton step taken
         if FAILED.search(line) or STEP.match(line):
@@ -265,7 +269,8 @@ def main() -> None:
         f"  attempts reaching the limit of {limit}: {at_limit}; stopped early by the step "
         f"control's rate test: {len(stopped)} (after {stopped} iterations); linear-solver "
         f"failures (GMRES on a kept factorisation): "
-        f"{sum(a.linear_failures for s in steps for a in s)}"
+        f"{sum(a.linear_failures for s in steps for a in s)} "
+        f"({sum(a.linear_failed_iterations for s in steps for a in s)} GMRES iterations)"
     )
     print("  iterations by cause:")
     for cause, count in causes.items():

@@ -64,6 +64,7 @@ def test_the_monitor_lines_count_the_steps_the_demo_counts(bench):
     (attempts,) = bench.parse(STEP_MONITOR.splitlines())
     (attempt,) = attempts
     assert attempt.converged and attempt.linear_failures == 2
+    assert attempt.linear_failed_iterations == 40  # (each failed GMRES ran to its limit of 20)
     assert len(attempt.iterations) == 8
     assert [it.solve_index for it in attempt.iterations] == [0] * 4 + [1] * 4
     assert attempt.iterations[3].residual_after == 2.133893833748e-03
