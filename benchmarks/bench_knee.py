@@ -19,12 +19,17 @@ Run: ``scripts/fenicsx python3 benchmarks/bench_knee.py [--degrees 30 --steps 10
 [--predictor extrapolate|rotation|0] [--processes 2] [--env KEY=VALUE ...] [--log FILE]``
 (defaults: the first 30° in 10 steps, the demo's predictor; ``--log`` keeps every monitor line,
 e.g. to count the iterations a solve spends below a tolerance). ``--degrees 150 --steps 50``
-is the full demo. Prints figures; asserts nothing about time.
+is the full demo. ``--penalties 2 2.000001 1.999999 2.000002 [--jobs 2]`` runs the demo once
+per penalty (each in its own output folder and log, named with the penalty): a change of one
+part in a million parts the paths by rounding, and the late steps' iteration counts move by
+tens with the path, so one run cannot judge a remedy; a table of the runs follows their
+figures. Prints figures; asserts nothing about time.
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import contextlib
 import dataclasses
 import json
@@ -146,10 +151,12 @@ def attribute(steps: list[list[Attempt]]) -> dict[str, int]:
     return causes
 
 
-def run_demo(command: list[str], env: dict, log_path: str | None, lines: list[str]) -> None:
+def run_demo(
+    command: list[str], env: dict, log_path: str | None, lines: list[str], echo: bool = True
+) -> None:
     """Run the demo, appending its output lines to ``lines``; print its own progress lines
-    and write every line to ``log_path`` (if given) as it comes, so that a run stopped or
-    killed keeps them."""
+    (with ``echo``) and write every line to ``log_path`` (if given) as it comes, so that a run
+    stopped or killed keeps them."""
     keep = open(log_path, "w") if log_path else contextlib.nullcontext()
     with (
         keep as log,
@@ -162,7 +169,8 @@ def run_demo(command: list[str], env: dict, log_path: str | None, lines: list[st
             if log is not None:
                 log.write(line)
                 log.flush()
-            if not line.lstrip().startswith(("Line", "Linear")) and not ITERATION.match(line):
+            progress = not line.lstrip().startswith(("Line", "Linear"))
+            if echo and progress and not ITERATION.match(line):
                 print(line, end="", flush=True)  # the demo's own progress lines
 
 
@@ -197,14 +205,46 @@ def arguments(argv: list[str] | None = None) -> argparse.Namespace:
         default=None,
         help="no run: the figures of an earlier run from its --log file and --output folder",
     )
-    return parser.parse_args(argv)
+    parser.add_argument(
+        "--penalties",
+        nargs="+",
+        default=None,
+        help="one run per penalty (MPa/mm), e.g. 2 2.000001 1.999999 2.000002: the paths "
+        "parted by rounding, their figures side by side",
+    )
+    parser.add_argument("--jobs", type=int, default=1, help="with --penalties: runs at a time")
+    args = parser.parse_args(argv)
+    if args.penalties is not None:
+        if args.from_log:
+            parser.error("--penalties runs the demo; --from-log reads one earlier run")
+        for penalty in args.penalties:
+            try:
+                float(penalty)
+            except ValueError:
+                parser.error(f"--penalties takes numbers, got {penalty!r}")
+    if args.jobs < 1:
+        parser.error(f"--jobs is at least 1, got {args.jobs}")
+    return args
 
 
-def main() -> None:
-    args = arguments()
+@dataclasses.dataclass
+class Run:
+    """One run of the demo: its settings, where it writes, and (once run) its output."""
+
+    env: dict
+    output: Path
+    log: str | None
+    penalty: str | None = None
+    lines: list[str] = dataclasses.field(default_factory=list)
+    wall: float = float("nan")
+
+
+def planned_runs(args: argparse.Namespace, environ: dict) -> list[Run]:
+    """The demo's runs the command line asks for: one, or one per ``--penalties`` value, each
+    with its own output folder and log (the penalty appended to their names)."""
     tag = f"{args.degrees:g}deg_{args.steps}steps_{args.processes}p"
     output = Path(args.output or HERE / "output" / f"knee_{tag}").resolve()
-    env = dict(os.environ)
+    env = dict(environ)
     env.update(
         MATDEPTH_KNEE_DEGREES=str(args.degrees),
         MATDEPTH_KNEE_STEPS=str(args.steps),
@@ -214,16 +254,68 @@ def main() -> None:
     if args.predictor is not None:
         env["MATDEPTH_KNEE_PREDICTOR"] = args.predictor
     env.update(demo_settings(args.env))
+    if args.penalties is None:
+        return [Run(env, output, args.log)]
+    runs = []
+    for penalty in args.penalties:
+        folder = output.with_name(f"{output.name}_penalty{penalty}")
+        log = f"{args.log}.penalty{penalty}" if args.log else None
+        settings = dict(env, MATDEPTH_KNEE_PENALTY=penalty, MATDEPTH_DEMO_OUTPUT=str(folder))
+        runs.append(Run(settings, folder, log, penalty))
+    return runs
+
+
+def execute(run: Run, command: list[str], echo: bool) -> None:
+    """Run the demo for ``run``, keeping its output lines and wall time."""
+    tic = time.perf_counter()
+    run_demo(command, run.env, run.log, run.lines, echo)
+    run.wall = time.perf_counter() - tic
+
+
+def paths_table(rows: list[dict], target: int | None = None) -> list[str]:
+    """The lines comparing the runs of ``--penalties`` (``report``'s figures of each), with
+    the iterations' mean, least and most (and the ``target`` of iterations, if given)."""
+    lines = ["paths (one run per penalty; the rounding parts them):",
+             "  penalty      iterations  converged  steps  cuts  at limit  stalled  "
+             "penetration  wall"]  # fmt: skip
+    for row in rows:
+        lines.append(
+            f"  {row['penalty']:<12s} {row['iterations']:10d} {row['converged']:10d} "
+            f"{row['steps']:6d} {row['cuts']:5d} {row['at_limit']:9d} {row['stalled']:8d}  "
+            f"{row['penetration']:8.3f} h  {row['wall']:5.0f} s"
+        )
+    counts = [row["iterations"] for row in rows]
+    if counts:
+        goal = f" (target <= {target})" if target is not None else ""
+        lines.append(f"  iterations: mean {sum(counts) / len(counts):.0f}, least {min(counts)}, "
+                     f"most {max(counts)}{goal}")  # fmt: skip
+    return lines
+
+
+def main() -> None:
+    args = arguments()
+    runs = planned_runs(args, dict(os.environ))
     command = [sys.executable, str(DEMO)]
     if args.processes > 1:
         command = ["mpirun", "-n", str(args.processes), *command]
-    tic = time.perf_counter()
-    lines: list[str] = []
     if args.from_log:
-        lines = Path(args.from_log).read_text().splitlines()
+        (run,) = runs
+        run.lines = Path(args.from_log).read_text().splitlines()
     else:
-        run_demo(command, env, args.log, lines)
-    wall = time.perf_counter() - tic
+        echo = len(runs) == 1 or args.jobs == 1
+        with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
+            for done in [pool.submit(execute, run, command, echo) for run in runs]:
+                done.result()
+    rows = [report(args, run) for run in runs]
+    if args.penalties is not None:
+        print()
+        target = TARGET_150_ITERATIONS if args.degrees == 150.0 else None
+        print("\n".join(paths_table(rows, target)))
+
+
+def report(args: argparse.Namespace, run: Run) -> dict:
+    """Print the figures of one run; return those ``paths_table`` compares."""
+    env, output, lines, wall = run.env, run.output, run.lines, run.wall
     if (output / "knee.json").exists():
         summary = json.loads((output / "knee.json").read_text())
     else:  # the demo was killed: the iterations from its monitor lines only
@@ -319,6 +411,15 @@ def main() -> None:
     if args.degrees == 150.0:
         print(f"  target: <= {TARGET_150_ITERATIONS} iterations, none at the limit, <= "
               f"{TARGET_150_SECONDS:.0f} s: {total}, {at_limit}, {wall:.0f} s")  # fmt: skip
+    return dict(
+        penalty=run.penalty or str(summary.get("penalty")), iterations=total,
+        converged=sum(converged_only), steps=len(steps),
+        cuts=sum(len(a) - 1 for a in steps), at_limit=at_limit,
+        stalled=int(summary.get("stalled_steps") or 0),
+        wall=wall, penetration=max(
+            (m["penetration_over_h"] for m in summary["steps"]), default=float("nan")
+        ),
+    )  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -69,3 +69,46 @@ def test_the_monitor_lines_count_the_steps_the_demo_counts(bench):
     assert [it.solve_index for it in attempt.iterations] == [0] * 4 + [1] * 4
     assert attempt.iterations[3].residual_after == 2.133893833748e-03
     assert attempt.iterations[4].residual_before == 8.233531634926e01
+
+
+def test_one_run_per_penalty_each_with_its_own_output_and_log(bench, tmp_path):
+    """``--penalties``: one run per value, the penalty in the demo's environment and in the
+    names of its output folder and log (two runs side by side must not share them); without
+    it, the one run as before."""
+    output = tmp_path / "knee"
+    argv = ["--output", str(output), "--log", str(tmp_path / "run.log"), "--env", "A=1"]
+    (single,) = bench.planned_runs(bench.arguments(argv), {"PETSC_OPTIONS": "-x"})
+    assert single.output == output and single.log == str(tmp_path / "run.log")
+    assert "MATDEPTH_KNEE_PENALTY" not in single.env and single.env["A"] == "1"
+    assert single.env["PETSC_OPTIONS"] == "-x " + bench.MONITORS
+    args = bench.arguments([*argv, "--penalties", "2", "2.000001", "--jobs", "2"])
+    runs = bench.planned_runs(args, {})
+    assert [run.penalty for run in runs] == ["2", "2.000001"]
+    assert [run.env["MATDEPTH_KNEE_PENALTY"] for run in runs] == ["2", "2.000001"]
+    assert [run.env["MATDEPTH_DEMO_OUTPUT"] for run in runs] == [str(run.output) for run in runs]
+    assert len({run.output for run in runs}) == 2 and len({run.log for run in runs}) == 2
+    assert all(run.env["A"] == "1" and run.output.parent == tmp_path for run in runs)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--penalties", "2", "two"], "numbers"),
+        (["--penalties", "2", "--from-log", "x.log"], "--from-log"),
+        (["--jobs", "0"], "at least 1"),
+    ],
+)
+def test_paths_arguments_that_cannot_run_are_refused(bench, argv, message, capsys):
+    with pytest.raises(SystemExit):
+        bench.arguments(argv)
+    assert message in capsys.readouterr().err
+
+
+def test_the_paths_table_gives_the_spread_of_the_iterations(bench):
+    row = dict(converged=0, steps=50, cuts=0, at_limit=0, stalled=0, penetration=0.1, wall=1.0)
+    rows = [dict(row, penalty=p, iterations=n) for p, n in (("2", 554), ("2.000001", 609))]
+    lines = bench.paths_table(rows, 400)
+    assert len(lines) == 3 + len(rows)  # a title, the header, the rows, the spread
+    assert lines[2].split()[:2] == ["2", "554"] and lines[3].split()[:2] == ["2.000001", "609"]
+    assert lines[-1] == "  iterations: mean 582, least 554, most 609 (target <= 400)"
+    assert bench.paths_table(rows)[-1].endswith("most 609")
