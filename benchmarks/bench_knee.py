@@ -341,6 +341,8 @@ def report(args: argparse.Namespace, run: Run) -> dict:
         for a in attempts
         if not a.converged and len(a.iterations) >= limit
     )  # fmt: skip
+    cuts = sum(len(a) - 1 for a in steps)
+    worst_pen = max((m["penetration_over_h"] for m in summary["steps"]), default=float("nan"))
     print()
     print(f"knee {args.degrees:g} deg in {args.steps} steps on {args.processes} process(es); "
           f"predictor {env.get('MATDEPTH_KNEE_PREDICTOR', '0')}; step control: target "
@@ -352,7 +354,7 @@ def report(args: argparse.Namespace, run: Run) -> dict:
           f"{summary.get('newton_atol', 1e-8):g} N; pseudo-transient sigma0 "
           f"{summary.get('pseudo_transient', 0.0):g}")  # fmt: skip
     print(f"  reached {summary['reached_degrees']:.1f} deg, completed {summary['completed']}, "
-          f"{len(steps)} steps, {sum(len(a) - 1 for a in steps)} cuts")  # fmt: skip
+          f"{len(steps)} steps, {cuts} cuts")  # fmt: skip
     print(f"  Newton iterations: {total} in all (failed attempts included), per step "
           f"{per_step}")  # fmt: skip
     print(f"  converged attempts only: {sum(converged_only)}, per step {converged_only}")
@@ -392,7 +394,6 @@ def report(args: argparse.Namespace, run: Run) -> dict:
     last = summary["steps"][-1] if summary["steps"] else {}
     if last:
         lowest = min(m["min_det_F"] for m in summary["steps"])
-        worst_pen = max(m["penetration_over_h"] for m in summary["steps"])
         print(f"  checks: penetration <= {worst_pen:.3f} h (target 0.1 h at the last step: "
               f"{last['penetration_over_h']:.3f}), lowest det F {lowest:.3f}, patella turned "
               f"{last['patella_rotation_degrees']:.1f} deg, displaced "
@@ -413,12 +414,8 @@ def report(args: argparse.Namespace, run: Run) -> dict:
               f"{TARGET_150_SECONDS:.0f} s: {total}, {at_limit}, {wall:.0f} s")  # fmt: skip
     return dict(
         penalty=run.penalty or str(summary.get("penalty")), iterations=total,
-        converged=sum(converged_only), steps=len(steps),
-        cuts=sum(len(a) - 1 for a in steps), at_limit=at_limit,
-        stalled=int(summary.get("stalled_steps") or 0),
-        wall=wall, penetration=max(
-            (m["penetration_over_h"] for m in summary["steps"]), default=float("nan")
-        ),
+        converged=sum(converged_only), steps=len(steps), cuts=cuts, at_limit=at_limit,
+        stalled=int(summary.get("stalled_steps") or 0), penetration=worst_pen, wall=wall,
     )  # fmt: skip
 
 

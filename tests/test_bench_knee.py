@@ -94,7 +94,8 @@ def test_one_run_per_penalty_each_with_its_own_output_and_log(bench, tmp_path):
     "argv, message",
     [
         (["--penalties", "2", "two"], "numbers"),
-        (["--penalties", "2", "--from-log", "x.log"], "--from-log"),
+        # (the usage line names --from-log too: the test looks for the reason)
+        (["--penalties", "2", "--from-log", "x.log"], "reads one earlier run"),
         (["--jobs", "0"], "at least 1"),
     ],
 )
