@@ -127,7 +127,9 @@ class ContactProblem(SNESCallbacks, _Releasable):
             the residual), factorising anew after a pattern rebuild and once GMRES needed more
             than REFACTORISE_ITERATIONS iterations; a solve starts on the factorisation the
             last one ended with when that one converged at the same contact penalty. A GMRES
-            failure goes on from the iterate reached with a new factorisation. Where keeping
+            failure goes on from the iterate reached with a new factorisation; GMRES stops at
+            its RATE_TEST_ITERATION-th iteration where its rate so far predicts more than
+            RATE_TEST_LIMIT (``kept_rate_test`` counts those ``stops``). Where keeping
             does not pay (the first GMRES on a new factorisation does not converge in
             KEPT_MAX_ITERATIONS, twice in a solve), the solve factorises every Jacobian and
             the problem's next solves do not try (see ``linear_solver``). With the
@@ -205,9 +207,6 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self._reset_kept_factorisation()
         if self.snes.getKSP().getPC().getType() == "gamg":
             self.assembler.set_near_nullspace(rigid_body_modes(u.function_space))
-        ksp = self.snes.getKSP()
-        ksp.setPreSolve(self._ksp_started)
-        ksp.setPostSolve(self._ksp_finished)
 
     def _create_vectors(self) -> None:
         """The residual and iterate vectors, and the last residual and energy evaluated."""
@@ -238,17 +237,10 @@ class ContactProblem(SNESCallbacks, _Releasable):
         if self._energy is not None or self.collisions is not None:
             self.snes.setLineSearchPreCheck(self._precheck)
         self.snes.setFromOptions()
-        self.snes.getKSP().setFromOptions()
-
-    def _inspect_linear_solver(self, user: dict, keep_factorisation: bool) -> None:
-        """What the linear solver the options made allows: the choice of LDL^T or LU, AMG,
-        keeping a factorisation."""
-        pc = self.snes.getKSP().getPC()
-        # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
-        self._choose_factorisation = "pc_type" not in user and linear_solver.is_mumps_direct(pc)
-        self._amg = self._amg and pc.getType() == "gamg"  # (PETSC_OPTIONS may differ)
-        # the direct solver keeps its factorisation (KEPT_FACTORISATION_OPTIONS)
-        self._keep_factorisation = keep_factorisation and (self._choose_factorisation or self._amg)
+        ksp = self.snes.getKSP()
+        ksp.setFromOptions()
+        ksp.setPreSolve(self._ksp_started)
+        ksp.setPostSolve(self._ksp_finished)
 
     def _reset_kept_factorisation(self) -> None:
         """The bookkeeping of the kept factorisation, as before a first solve."""

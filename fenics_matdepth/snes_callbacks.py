@@ -645,6 +645,20 @@ class SNESCallbacks:
         change = getattr(self.contact, "stick_slip_change", None)
         return change is not None and change() > linear_solver.FRICTION_SWITCH_SHARE
 
+    def _inspect_linear_solver(self, user: dict, keep_factorisation: bool) -> None:
+        """What the linear solver the options made allows: the choice of LDL^T or LU, AMG,
+        keeping a factorisation."""
+        pc = self.snes.getKSP().getPC()
+        # the default direct solver: LDL^T for the symmetric Jacobians (choose_factorisation)
+        self._choose_factorisation = "pc_type" not in user and linear_solver.is_mumps_direct(pc)
+        self._amg = self._amg and pc.getType() == "gamg"  # (PETSC_OPTIONS may differ)
+        # the direct solver keeps its factorisation (KEPT_FACTORISATION_OPTIONS)
+        self._keep_factorisation = keep_factorisation and (self._choose_factorisation or self._amg)
+        #: GMRES on a kept factorisation stopped early by its rate (linear_solver.KeptRateTest)
+        self.kept_rate_test = linear_solver.KeptRateTest()
+        if self._keep_factorisation and not self._amg:
+            self.snes.getKSP().addConvergenceTest(self.kept_rate_test)
+
     def _count_kept_failure(self) -> None:
         """Count a GMRES failure on a kept factorisation. Once the first GMRES on a new
         factorisation failed KEPT_TRIES times, the rest of the solve factorises every

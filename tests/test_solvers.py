@@ -182,6 +182,27 @@ def test_a_kept_factorisation():
     assert [record[0] for _, _, record in failing] == [True, True, False, True]
 
 
+def test_the_kept_factorisation_has_the_rate_test():
+    """With a kept factorisation the problem's GMRES runs ``linear_solver.KeptRateTest`` after
+    PETSc's own test: at the 5th iteration a residual at 0.9 of the first (a prediction of
+    1,093 iterations to 1e-10) stops it as diverged, at the 3rd nothing does, and the test
+    counts the stop; with a factorisation per iteration (``preonly``) nothing stops."""
+    comm = MPI.COMM_WORLD
+    mesh, V, u, residual, energy = _stacked_blocks(comm)
+    bcs, _ = _press_bcs(mesh, V, 0.9, -0.02)
+    contact = fm.ContactOperator(u, fm.material_depth(mesh), penalty=200.0)
+    diverged = int(PETSc.KSP.ConvergedReason.DIVERGED_MAX_IT)
+    for keep, expected, stops in ((True, [0, 0, diverged], 1), (False, [0, 0, 0], 0)):
+        with ContactProblem(
+            residual, u, contact, bcs=bcs, energy=energy, keep_factorisation=keep
+        ) as problem:
+            assert problem.solve().converged
+            ksp = problem.snes.getKSP()
+            calls = ((0, 1.0), (3, 0.5), (5, 0.9))  # (iteration, residual norm)
+            assert [int(ksp.callConvergenceTest(i, r)) for i, r in calls] == expected
+            assert problem.kept_rate_test.stops == stops
+
+
 def test_a_carried_factorisation_that_fails_backs_off():
     """Where GMRES does not converge on the factorisation a solve was handed by the one before
     (here: the bulk made 20 times stiffer in between), the solve goes on with a factorisation
