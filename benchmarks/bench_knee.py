@@ -40,6 +40,8 @@ import sys
 import time
 from pathlib import Path
 
+from fenics_matdepth.linear_solver import KEPT_MAX_ITERATIONS
+
 HERE = Path(__file__).resolve().parent
 DEMO = HERE.parent / "demos" / "demo_knee.py"
 
@@ -73,6 +75,7 @@ class Attempt:
     iterations: list[Iteration] = dataclasses.field(default_factory=list)
     linear_failures: int = 0
     linear_failed_iterations: int = 0  # the GMRES iterations of those failed linear solves
+    linear_rate_stops: int = 0  # of those, stopped before their limit (linear_solver.KeptRateTest)
     converged: bool = False
     stopped_early: bool = False  # by the step control's rate test (reason DIVERGED_DTOL)
 
@@ -111,7 +114,9 @@ def parse(lines: list[str]) -> list[list[Attempt]]:
         elif "did not converge" in line and "Linear" in line:
             attempts[-1].linear_failures += 1
             gmres = LINEAR_ITERATIONS.search(line)
-            attempts[-1].linear_failed_iterations += int(gmres.group(1)) if gmres else 0
+            gmres_iterations = int(gmres.group(1)) if gmres else KEPT_MAX_ITERATIONS
+            attempts[-1].linear_failed_iterations += gmres_iterations if gmres else 0
+            attempts[-1].linear_rate_stops += gmres_iterations < KEPT_MAX_ITERATIONS
             after_linear_failure = True
             current = None  # the solve restarts from this iterate: no Newton step taken
         if FAILED.search(line) or STEP.match(line):
@@ -364,7 +369,8 @@ def report(args: argparse.Namespace, run: Run) -> dict:
         f"control's rate test: {len(stopped)} (after {stopped} iterations); linear-solver "
         f"failures (GMRES on a kept factorisation): "
         f"{sum(a.linear_failures for s in steps for a in s)} "
-        f"({sum(a.linear_failed_iterations for s in steps for a in s)} GMRES iterations)"
+        f"({sum(a.linear_failed_iterations for s in steps for a in s)} GMRES iterations; "
+        f"{sum(a.linear_rate_stops for s in steps for a in s)} stopped by their rate)"
     )
     print("  iterations by cause:")
     for cause, count in causes.items():

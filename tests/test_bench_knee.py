@@ -65,6 +65,12 @@ def test_the_monitor_lines_count_the_steps_the_demo_counts(bench):
     (attempt,) = attempts
     assert attempt.converged and attempt.linear_failures == 2
     assert attempt.linear_failed_iterations == 40  # (each failed GMRES ran to its limit of 20)
+    assert attempt.linear_rate_stops == 0
+    # the same step with its first failure stopped by the rate test at the 5th iteration
+    stopped = STEP_MONITOR.replace("iterations 20", "iterations 5", 1).splitlines()
+    ((early,),) = bench.parse(stopped)
+    assert (early.linear_failures, early.linear_failed_iterations) == (2, 25)
+    assert early.linear_rate_stops == 1
     assert len(attempt.iterations) == 8
     assert [it.solve_index for it in attempt.iterations] == [0] * 4 + [1] * 4
     assert attempt.iterations[3].residual_after == 2.133893833748e-03
