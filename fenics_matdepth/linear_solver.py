@@ -87,7 +87,7 @@ KEPT_TRIES = 2
 #: failure, from the same iterate, with its Jacobian factorised). Measured on the knee's
 #: penalty-2 path (``benchmarks/bench_knee.py``, 554 Newton iterations): at the 5th
 #: iteration the 33 solves that went on to converge predicted 5 to 38 iterations, the 72 that
-#: failed at 20 predicted 16 to 826; with the test 35 of them stopped at the 5th, the path
+#: failed at 20 predicted 16 to 826; with the test 36 of them stopped at the 5th, the path
 #: the same to the bit, and the failed solves' GMRES iterations fell from 1,440 to 900.
 RATE_TEST_ITERATION = 5
 RATE_TEST_LIMIT = 2 * KEPT_MAX_ITERATIONS
