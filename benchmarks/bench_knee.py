@@ -114,9 +114,9 @@ def parse(lines: list[str]) -> list[list[Attempt]]:
         elif "did not converge" in line and "Linear" in line:
             attempts[-1].linear_failures += 1
             gmres = LINEAR_ITERATIONS.search(line)
-            gmres_iterations = int(gmres.group(1)) if gmres else KEPT_MAX_ITERATIONS
-            attempts[-1].linear_failed_iterations += gmres_iterations if gmres else 0
-            attempts[-1].linear_rate_stops += gmres_iterations < KEPT_MAX_ITERATIONS
+            if gmres:
+                attempts[-1].linear_failed_iterations += int(gmres.group(1))
+                attempts[-1].linear_rate_stops += int(gmres.group(1)) < KEPT_MAX_ITERATIONS
             after_linear_failure = True
             current = None  # the solve restarts from this iterate: no Newton step taken
         if FAILED.search(line) or STEP.match(line):
