@@ -19,6 +19,7 @@ from fenics_matdepth.contact.pairs import (
     candidate_pairs,
     coupling_keys,
     pair_vertices,
+    pairs_holding,
     pattern_keys,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
@@ -106,6 +107,26 @@ def test_pair_vertices_are_the_pairs_elements():
         assert np.array_equal(verts[:, :m], element)
         assert np.array_equal(verts[:, m:], surface.tets[pk])
         assert all(len(set(row)) == m + 4 for row in verts.tolist())
+
+
+@pytest.mark.parametrize("integration", ["area", "collocation"])
+def test_pairs_holding_are_the_pairs_with_a_marked_vertex(integration):
+    """The pairs holding one of a set of vertices, from a mask over the held vertices, are
+    those of whose pair_vertices row one is in the set: for one vertex of a pair (its element's
+    or its tetrahedron's), ten random held vertices, and none."""
+    surface = two_box_surface(integration)
+    pa, pk = candidate_pairs(surface, integration, surface.margin)
+    verts = pair_vertices(surface, integration, pa, pk)
+    rng = np.random.default_rng(3)
+    sets = [np.empty(0, dtype=int), rng.choice(surface.global_vertex.size, 10, replace=False)]
+    if pa.size:
+        sets += [verts[pa.size // 2, :1], verts[pa.size // 3, -1:]]
+    for chosen in sets:
+        held = np.zeros(surface.global_vertex.size, dtype=bool)
+        held[chosen] = True
+        expected = np.isin(verts, chosen).any(axis=1)
+        assert np.array_equal(pairs_holding(surface, integration, pa, pk, held), expected)
+    assert pa.size == 0 or expected.any()
 
 
 @pytest.mark.parametrize("seed", [0, 1])

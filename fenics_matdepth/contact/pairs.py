@@ -23,7 +23,14 @@ from fenics_matdepth.geometry.boxes import (
 )
 from fenics_matdepth.geometry.intersect import near_pairs
 
-__all__ = ["PairSearch", "candidate_pairs", "coupling_keys", "pair_vertices", "pattern_keys"]
+__all__ = [
+    "PairSearch",
+    "candidate_pairs",
+    "coupling_keys",
+    "pair_vertices",
+    "pairs_holding",
+    "pattern_keys",
+]
 
 #: Default skin of the candidate pairs (area integration), in mean boundary edge lengths (see
 #: :attr:`PairSearch.skin`).
@@ -59,6 +66,18 @@ def pair_vertices(
     if integration == "area":
         return np.hstack((surface.tri[pa], surface.tets[pk]))
     return np.hstack((surface.nodes[pa, None], surface.tets[pk]))
+
+
+def pairs_holding(
+    surface: ContactSurface, integration: str, pa: np.ndarray, pk: np.ndarray, held: np.ndarray
+) -> np.ndarray:
+    """Whether each pair holds one of the vertices marked in ``held`` (a mask over the
+    surface's held vertices), without :func:`pair_vertices`' table of every pair."""
+    if integration == "area":
+        element = held[surface.tri[pa]].any(axis=1)
+    else:
+        element = held[surface.nodes[pa]]
+    return element | held[surface.tets[pk]].any(axis=1)
 
 
 def pattern_keys(surface: ContactSurface, integration: str, margin: float) -> np.ndarray:
