@@ -131,8 +131,9 @@ class PatchAssembly:
 
     def touching(self, vertices: np.ndarray) -> np.ndarray:
         """Whether each owned cell (``cells``) has one of the global ``vertices``: a mask of
-        this process's vertices, gathered by cell (a test of every cell's four global numbers
-        against ``vertices`` took 20 ms a patch on the knee)."""
+        this process's vertices, gathered by cell (testing every cell's four global numbers,
+        and every candidate pair's seven, against ``vertices`` took 2.7 s of the 18.8 s the
+        knee's relaxation spent from 141 to 150 deg)."""
         return np.isin(self.global_vertex, vertices)[self.cells].any(axis=1)
 
     def model(self, dofs: np.ndarray) -> PatchModel:
