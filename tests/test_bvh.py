@@ -243,3 +243,22 @@ def test_exclude_shared_vertex_pairs():
     ]
     assert list(zip(kt.tolist(), kk.tolist(), strict=True)) == expected
     assert 0 < len(expected) < q.size  # both kinds of pairs were present
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.05])
+def test_query_boxes_apart_leaves_out_the_shared_vertex_pairs_in_order(margin):
+    """``query_boxes(..., apart=(tri, tets))`` answers what exclude_shared_vertex_pairs keeps
+    of the whole answer, the same pairs in the same order; wrong cell counts are refused."""
+    rng = np.random.default_rng(6)
+    x, tets = _jittered_box_tets(4, rng)
+    tri = tets[rng.integers(0, len(tets), 200)][:, 1:]
+    tree = AABBTree(x, tets)
+    lo, hi = element_boxes(x, tri)
+    q, e = tree.query_boxes(lo, hi, margin=margin)
+    kt, kk = exclude_shared_vertex_pairs(tri, tets, q, e)
+    at, ak = tree.query_boxes(lo, hi, margin=margin, apart=(tri, tets))
+    assert 0 < at.size < q.size
+    assert np.array_equal(at, kt) and np.array_equal(ak, kk)
+    assert at.dtype == kt.dtype and ak.dtype == kk.dtype
+    with pytest.raises(ValueError, match="a cell per query box"):
+        tree.query_boxes(lo, hi, apart=(tri[:-1], tets))
