@@ -592,9 +592,10 @@ class AABBTree:
             margin: inflation of the query boxes (L), >= 0.
             apart: (query cells (nq, a), element cells (ne, b)), vertex indices in one
                 numbering: the pairs whose cells share a vertex are left out as they are found,
-                the others kept in order (what :func:`~fenics_matdepth.geometry.boxes.
-                exclude_shared_vertex_pairs` keeps of the whole answer, without writing the
-                pairs it drops: on the knee a third of the 527k a search finds).
+                the others kept in order (what
+                :func:`~fenics_matdepth.geometry.boxes.exclude_shared_vertex_pairs` keeps of
+                the whole answer, without writing the pairs it drops: on the knee a third of
+                the 527k a search finds).
 
         Returns:
             (query index (m,), element index (m,)), int64, grouped by query index.
