@@ -115,8 +115,9 @@ def parse(lines: list[str]) -> list[list[Attempt]]:
             attempts[-1].linear_failures += 1
             gmres = LINEAR_ITERATIONS.search(line)
             if gmres:
-                attempts[-1].linear_failed_iterations += int(gmres.group(1))
-                attempts[-1].linear_rate_stops += int(gmres.group(1)) < KEPT_MAX_ITERATIONS
+                iterations = int(gmres.group(1))
+                attempts[-1].linear_failed_iterations += iterations
+                attempts[-1].linear_rate_stops += iterations < KEPT_MAX_ITERATIONS
             after_linear_failure = True
             current = None  # the solve restarts from this iterate: no Newton step taken
         if FAILED.search(line) or STEP.match(line):

@@ -24,6 +24,7 @@ __all__ = [
     "kept_pairs",
     "overlapping_pairs",
     "rows_overlap",
+    "share_vertex",
 ]
 
 
@@ -80,6 +81,17 @@ def kept_pairs(pair_tri, pair_tet, keep, n_keep):
     return out_t, out_k
 
 
+@njit(inline="always")
+def share_vertex(a_cells, a, b_cells, b):
+    """Whether row a of a_cells and row b of b_cells have a vertex number in common."""
+    for i in range(a_cells.shape[1]):
+        va = a_cells[a, i]
+        for j in range(b_cells.shape[1]):
+            if va == b_cells[b, j]:
+                return True
+    return False
+
+
 @njit(cache=True)
 def _exclude_shared_vertex_pairs(tri_cells, tet_cells, pair_tri, pair_tet):
     """Keep the (triangle, tetrahedron) pairs that share no vertex.
@@ -96,14 +108,7 @@ def _exclude_shared_vertex_pairs(tri_cells, tet_cells, pair_tri, pair_tet):
     keep = np.empty(m, dtype=np.bool_)
     n_keep = 0
     for p in range(m):
-        t = pair_tri[p]
-        k = pair_tet[p]
-        shared = False
-        for a in range(tri_cells.shape[1]):
-            va = tri_cells[t, a]
-            for b in range(tet_cells.shape[1]):
-                if va == tet_cells[k, b]:
-                    shared = True
+        shared = share_vertex(tri_cells, pair_tri[p], tet_cells, pair_tet[p])
         keep[p] = not shared
         if not shared:
             n_keep += 1

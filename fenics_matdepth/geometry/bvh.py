@@ -39,7 +39,7 @@ import numpy as np
 from numba import njit
 
 from fenics_matdepth._constants import INDEX
-from fenics_matdepth.geometry.boxes import as_points, element_box_rows, rows_overlap
+from fenics_matdepth.geometry.boxes import as_points, element_box_rows, rows_overlap, share_vertex
 from fenics_matdepth.geometry.distance import point_box_dist2, point_triangle_dist2
 
 __all__ = [
@@ -88,17 +88,6 @@ def _push_pair(out_q, out_e, m, q, e):
     out_q[m] = q
     out_e[m] = e
     return out_q, out_e
-
-
-@njit(inline="always")
-def _share_vertex(qcells, q, ecells, e):
-    """Whether query cell q and element e have a vertex number in common."""
-    for a in range(qcells.shape[1]):
-        va = qcells[q, a]
-        for b in range(ecells.shape[1]):
-            if va == ecells[e, b]:
-                return True
-    return False
 
 
 @njit(inline="always")
@@ -367,7 +356,7 @@ def _query_boxes(
                 for e in range(s, s + node_count[i]):
                     if rows_overlap(qbox, q, elem_box, e, margin):
                         k = order[e]
-                        if apart and _share_vertex(qcells, q, ecells, k):
+                        if apart and share_vertex(qcells, q, ecells, k):
                             continue
                         out_q, out_e = _push_pair(out_q, out_e, m, q, k)
                         m += 1
