@@ -1074,6 +1074,11 @@ if problem.relaxation is not None:
         f"local relaxation: {r.uses} patches relaxed in {r.local_iterations} local Newton "
         f"iterations, {r.seconds:.1f} s"
     )
+report(
+    f"contact pair searches: {comm.allreduce(contact.pair_searches)} of the whole surface, "
+    f"{comm.allreduce(contact.pair_search.partial_searches)} round the moved vertices only "
+    "(summed over the processes)"
+)
 # -
 
 # ### Figures

@@ -5,8 +5,9 @@ held, assembled over the patch's cells and contact pairs only (for
 :class:`PatchAssembly` compiles the bulk energy and its first two derivatives once; for each
 patch it makes DOLFINx forms of the same compiled code whose cell integrals run over the owned
 cells touching a patch vertex (``dolfinx.fem.create_form`` with those cells as the integrals'
-subdomains), and keeps the contact operator's candidate pairs (found with its skin) that hold a
-patch vertex and lie within ``NEAR_EDGES`` mean boundary edges. A patch's energy differs from
+subdomains), and the contact pairs that hold a patch vertex and lie within ``NEAR_EDGES`` mean
+boundary edges (area integration: searched round the patch's vertices; collocation: of the
+contact operator's candidate pairs). A patch's energy differs from
 the whole problem's by the energy of what it does not touch, which the patch's vertices do not
 change; its gradient and Hessian at the patch's dofs are the whole problem's. A trial state
 that inverts a patch cell (or, with ``det_floor``, brings its det F that close to 0) has
@@ -41,7 +42,7 @@ from fenics_matdepth.geometry.intersect import near_pairs
 
 __all__ = ["PatchAssembly", "PatchModel"]
 
-#: the contact pairs of a patch: the candidates holding a patch vertex whose triangle and
+#: the contact pairs of a patch: the pairs holding a patch vertex whose triangle and
 #: tetrahedron lie within this many mean boundary edges of each other
 NEAR_EDGES = 0.1
 
@@ -138,7 +139,7 @@ class PatchAssembly:
 
     def model(self, dofs: np.ndarray) -> PatchModel:
         """The patch of the free global dofs ``dofs`` (sorted, whole vertices, the same on
-        every process), at the contact operator's current candidate pairs (collective)."""
+        every process), with the contact pairs round it now (collective)."""
         return PatchModel(self, np.asarray(dofs, dtype=np.int64))
 
     def forms(self, cells: np.ndarray) -> list[dolfinx.fem.Form]:
@@ -184,17 +185,19 @@ class PatchModel:
         self._owned_global = dofs[self._owned_at].astype(PETSc.IntType)
         contact = owner.contact
         s = contact.surface
-        search = contact.pair_search
-        chosen = pairs.pairs_holding(
-            s, contact.integration, search.pair_a, search.pair_k,
-            np.isin(s.global_vertex, vertices),
-        )  # fmt: skip
-        pa, pk = search.pair_a[chosen], search.pair_k[chosen]
+        held = np.isin(s.global_vertex, vertices)
         if contact.integration == "area":
-            # of the candidates (boxes within the search's skin), those within NEAR_EDGES mean
-            # boundary edges (the others cost most of a patch's time: 0.3 s a patch at 0.5
-            # edges on the knee); a local step that closes a wider gap misses that pair
-            pa, pk = near_pairs(s.x, s.tri, s.tets, pa, pk, NEAR_EDGES * s.mean_edge)
+            # the pairs within NEAR_EDGES mean boundary edges (wider ones cost most of a
+            # patch's time: 0.3 s a patch at 0.5 edges on the knee; a local step that closes a
+            # wider gap misses that pair), searched round the patch: the operator's candidates
+            # may be those of coordinates a skin away (PairSearch)
+            near = NEAR_EDGES * s.mean_edge
+            pa, pk = pairs.pairs_touching(s, held, near)
+            pa, pk = near_pairs(s.x, s.tri, s.tets, pa, pk, near)
+        else:
+            search = contact.pair_search
+            chosen = pairs.pairs_holding(s, contact.integration, search.pair_a, search.pair_k, held)
+            pa, pk = search.pair_a[chosen], search.pair_k[chosen]
         self.pair_a, self.pair_k = pa, pk
         # the pairs' dofs in the patch's numbering (-1: held)
         held = s.global_vertex[pairs.pair_vertices(s, contact.integration, pa, pk)]

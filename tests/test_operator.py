@@ -271,16 +271,22 @@ def test_coupling_positions_of_grouped_pairs_in_an_asymmetric_pattern():
     assert missing == np.count_nonzero(~found) > 0
 
 
-def test_candidate_pairs_serve_later_updates_within_the_skin():
+@pytest.mark.parametrize("share", [None, 1.0])
+def test_candidate_pairs_serve_later_updates_within_the_skin(share, monkeypatch):
     """The candidate pairs of a search with the skin serve the updates after it until a held
-    vertex has moved by about half the skin: at every state of a slide in steps of 0.05 to
-    1.2 skins, those whose boxes overlap now are the pairs of a fresh search without skin, and
-    the intersecting pairs are that search's, while fewer searches were made than updates."""
+    vertex has moved by about half the skin, and are then searched again round the moved
+    vertices only: at every state of a slide in steps of 0.05 to 1.2 skins, those whose boxes
+    overlap now are the pairs of a fresh search without skin, and the intersecting pairs are
+    that search's in its order, while fewer searches were made than updates. The upper box
+    holds half the surface, more than a search in part takes: with ``PARTIAL_SEARCH_SHARE``
+    raised to 1 the updates past the skin search round it only."""
     from fenics_matdepth.contact import pairs
     from fenics_matdepth.contact.kernels.drivers import intersecting
     from fenics_matdepth.geometry.boxes import overlapping_pairs
 
     comm = MPI.COMM_WORLD
+    if share is not None:
+        monkeypatch.setattr(pairs, "PARTIAL_SEARCH_SHARE", share)
     _, V, u, op = _setup(comm, "area")
     skin = op.pair_skin
     assert skin > 0.0
@@ -308,11 +314,15 @@ def test_candidate_pairs_serve_later_updates_within_the_skin():
         assert set(kept) == set(zip(fa.tolist(), fk.tolist(), strict=True))
         hit = intersecting(s.x, s.tri, s.kernel_tets, fa, fk)
         active = op._intersecting_pairs()
-        got = set(zip(pa[active].tolist(), pk[active].tolist(), strict=True))
-        assert got == set(zip(fa[hit].tolist(), fk[hit].tolist(), strict=True))
+        np.testing.assert_array_equal(pa[active], fa[hit])
+        np.testing.assert_array_equal(pk[active], fk[hit])
         assert comm.allreduce(active.size) > 0
     searches = comm.allreduce(op.pair_searches)
-    assert comm.size < searches < comm.size * (len(steps) + 1)
+    partial = comm.allreduce(op.pair_search.partial_searches)
+    if share is None:
+        assert partial == 0 and comm.size < searches < comm.size * (len(steps) + 1)
+    else:
+        assert searches < partial and searches + partial < comm.size * (len(steps) + 1)
     # a new skin is searched with at once, however little the vertices moved
     op.pair_skin = 3.0 * skin
     u.x.array[: 3 * n_owned].reshape(-1, 3)[on_upper, 0] += 0.01 * skin

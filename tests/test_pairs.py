@@ -20,6 +20,7 @@ from fenics_matdepth.contact.pairs import (
     coupling_keys,
     pair_vertices,
     pairs_holding,
+    pairs_touching,
     pattern_keys,
 )
 from fenics_matdepth.contact.surface import ContactSurface, DepthDeficiencyWarning
@@ -127,6 +128,31 @@ def test_pairs_holding_are_the_pairs_with_a_marked_vertex(integration):
         expected = np.isin(verts, chosen).any(axis=1)
         assert np.array_equal(pairs_holding(surface, integration, pa, pk, held), expected)
     assert pa.size == 0 or expected.any()
+
+
+def test_pairs_touching_are_a_whole_search_round_the_marked_vertices():
+    """The area pairs holding a marked vertex, searched round those vertices only, are the
+    pairs of a whole search holding one, in that search's order: for one vertex of a pair's
+    triangle, one of its tetrahedron's only, ten random held vertices, all and none; at the
+    surface's margin and at 0."""
+    surface = two_box_surface("area")
+    rng = np.random.default_rng(5)
+    n = surface.global_vertex.size
+    for margin in (surface.margin, 0.0):
+        pa, pk = candidate_pairs(surface, "area", margin)
+        assert pa.size > 0
+        verts = pair_vertices(surface, "area", pa, pk)
+        tet_only = np.setdiff1d(verts[pa.size // 3, 3:], verts[pa.size // 3, :3])[:1]
+        marks = [verts[pa.size // 2, :1], tet_only, rng.choice(n, 10, replace=False)]
+        marks += [np.arange(n), np.empty(0, dtype=int)]
+        for chosen in marks:
+            held = np.zeros(n, dtype=bool)
+            held[chosen] = True
+            want = pairs_holding(surface, "area", pa, pk, held)
+            ta, tk = pairs_touching(surface, held, margin)
+            np.testing.assert_array_equal(ta, pa[want])
+            np.testing.assert_array_equal(tk, pk[want])
+            assert chosen.size == 0 or chosen.size == n or 0 < ta.size < pa.size
 
 
 @pytest.mark.parametrize("seed", [0, 1])

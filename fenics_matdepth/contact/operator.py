@@ -189,7 +189,8 @@ class ContactOperator(FrictionMixin):
 
     @property
     def pair_searches(self) -> int:
-        """The number of pair searches so far (the other updates reused the candidate pairs)."""
+        """The pair searches of the whole surface so far, on this process (the other updates
+        reused the candidates or searched round the moved vertices: ``pair_search``)."""
         return self.pair_search.searches
 
     # -- geometry -------------------------------------------------------------------------

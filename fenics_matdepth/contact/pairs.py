@@ -17,6 +17,7 @@ from fenics_matdepth._constants import INDEX
 from fenics_matdepth.contact.kernels.drivers import intersecting
 from fenics_matdepth.contact.surface import ContactSurface
 from fenics_matdepth.geometry.boxes import element_boxes, overlapping_pairs
+from fenics_matdepth.geometry.bvh import AABBTree
 from fenics_matdepth.geometry.intersect import near_pairs
 
 __all__ = [
@@ -25,12 +26,18 @@ __all__ = [
     "coupling_keys",
     "pair_vertices",
     "pairs_holding",
+    "pairs_touching",
     "pattern_keys",
+    "search_order",
 ]
 
 #: Default skin of the candidate pairs (area integration), in mean boundary edge lengths (see
 #: :attr:`PairSearch.skin`).
 PAIR_SKIN = 0.1
+
+#: A :class:`PairSearch` update searches again only round the vertices that moved while their
+#: contact elements and tetrahedra are at most this fraction of the rank's; past it, everywhere.
+PARTIAL_SEARCH_SHARE = 0.25
 
 
 def candidate_pairs(
@@ -54,6 +61,60 @@ def candidate_pairs(
     qa, qk = surface.tree.query_boxes(pts, pts, margin=margin)
     keep = np.all(tets[qk] != surface.nodes[qa, None], axis=1)
     return qa[keep], qk[keep]
+
+
+def _round_pairs(
+    x: np.ndarray,
+    tri: np.ndarray,
+    tets: np.ndarray,
+    tri_near: np.ndarray,
+    tet_near: np.ndarray,
+    tet_tree: AABBTree,
+    tri_tree: AABBTree,
+    margin: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (triangle, tetrahedron) pairs sharing no vertex whose boxes at ``x`` overlap within
+    ``margin``, of the triangles marked in ``tri_near`` or the tetrahedra marked in
+    ``tet_near``, each once (in no particular order). ``tet_tree`` and ``tri_tree`` are trees
+    over ``tets`` and ``tri`` at ``x``."""
+    ta, kb = np.flatnonzero(tri_near), np.flatnonzero(tet_near)
+    lo, hi = element_boxes(x, tri[ta])
+    qa, qk = tet_tree.query_boxes(lo, hi, margin=margin, apart=(tri[ta], tets))
+    # the marked tetrahedra against the triangles not marked (the others were queried above)
+    lo, hi = element_boxes(x, tets[kb])
+    qk2, qa2 = tri_tree.query_boxes(lo, hi, margin=margin, apart=(tets[kb], tri))
+    other = ~tri_near[qa2]
+    return (
+        np.concatenate((ta[qa], qa2[other])).astype(INDEX),
+        np.concatenate((qk, kb[qk2[other]])).astype(INDEX),
+    )
+
+
+def search_order(surface: ContactSurface, pa: np.ndarray, pk: np.ndarray) -> np.ndarray:
+    """The order in which a search of the whole surface lists the area pairs ``(pa, pk)``:
+    by contact element, then by the tetrahedra's order in the surface's tree (the order of
+    :func:`candidate_pairs`' answer, whatever order the pairs were found in)."""
+    position = np.empty(surface.tets.shape[0], dtype=INDEX)
+    position[surface.tree.order] = np.arange(surface.tets.shape[0], dtype=INDEX)
+    keys = pa.astype(INDEX) * surface.tets.shape[0] + position[pk]
+    return np.argsort(keys, kind="stable")
+
+
+def pairs_touching(
+    surface: ContactSurface, held: np.ndarray, margin: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The area pairs holding a vertex marked in ``held`` (a mask over the held vertices) whose
+    boxes overlap within ``margin`` now: those of :func:`candidate_pairs` with that margin that
+    hold such a vertex, in its order, found by a search round them only."""
+    if surface.tree is None or surface.tri.shape[0] == 0:
+        return np.empty(0, dtype=INDEX), np.empty(0, dtype=INDEX)
+    x, tri, tets = surface.x, surface.tri, surface.tets
+    pa, pk = _round_pairs(
+        x, tri, tets, held[tri].any(axis=1), held[tets].any(axis=1), surface.tree,
+        AABBTree(x, tri), margin,
+    )  # fmt: skip
+    order = search_order(surface, pa, pk)
+    return pa[order], pk[order]
 
 
 def pair_vertices(
@@ -120,13 +181,24 @@ class PairSearch:
             :class:`~fenics_matdepth.ContactOperator`).
         skin: the initial :attr:`skin` (L).
 
+    With area integration an update searches again only round the vertices that moved by more
+    than 0.45 of the skin since they were last searched round (each vertex keeps the
+    coordinates it had then), unless they hold more than ``PARTIAL_SEARCH_SHARE`` of the
+    contact elements or tetrahedra: the pairs of their elements and tetrahedra are searched
+    anew at those coordinates, the others kept. Every pair not listed then has boxes more than
+    the skin apart at its vertices' kept coordinates, from which no vertex is more than 0.45 of
+    it away, so no pair whose boxes overlap now is missed. The list is a superset of what a
+    whole search finds, in another order: :meth:`intersecting` gives its pairs in the order of
+    a whole search (:func:`search_order`), so the contact sums are the same to the bit.
+
     Attributes:
         skin: the skin of the candidate pairs, in L. The search inflates the contact element
             boxes by it, and its pairs serve later updates until some held vertex has moved by
             more than about half of it (no pair can then have come into contact unseen). With
             0 every update searches, as collocation always does, whose kernel evaluates every
             candidate. Assignable; the next update searches with a new value.
-        searches: the number of pair searches so far (the other updates reused the pairs).
+        searches: the number of pair searches of the whole surface so far.
+        partial_searches: the updates that searched round the moved vertices only.
         pair_a: (n,) contact element of each candidate pair (a row of ``surface.tri``, or a
             position in ``surface.nodes`` with collocation).
         pair_k: (n,) tetrahedron of each candidate pair (a row of ``surface.tets``).
@@ -136,47 +208,98 @@ class PairSearch:
         self.integration = integration
         self.skin = skin
         self.searches = 0
+        self.partial_searches = 0
         self.pair_a = np.empty(0, dtype=INDEX)
         self.pair_k = np.empty(0, dtype=INDEX)
-        self._x_at_search: np.ndarray | None = None  # held coordinates at the last search
+        # per held vertex, its coordinates when last searched round (the last search's for
+        # collocation, which does not search in part)
+        self._x_at_search: np.ndarray | None = None
+        self._trees: tuple[AABBTree, AABBTree] | None = None  # at _x_at_search (partial)
         self._search_refreshes = -1  # the halo build of the last search
         self._searched_skin = 0.0  # the skin of the last search
+        self._in_search_order = True  # the pairs as a whole search lists them
 
-    def search_needed(self, surface: ContactSurface) -> bool:
-        """Whether the candidate pairs of the last search may miss a pair whose boxes now
-        overlap: a new halo, no skin or another skin than the search's, or a held vertex moved
-        by more than 0.45 of the skin since (two boxes that overlap now were then at most twice
-        that apart per axis, within the skin the search inflated the boxes by; the tenth
-        spared covers rounding)."""
-        if (
+    def _whole_search_needed(self, surface: ContactSurface) -> bool:
+        """No skin or another skin than the last search's, no search yet, or a new halo."""
+        return (
             self.skin <= 0.0
             or self.skin != self._searched_skin
             or self._x_at_search is None
             or surface.refreshes != self._search_refreshes
-        ):
-            return True
-        moved = float(np.abs(surface.x - self._x_at_search).max(initial=0.0))
-        return not (moved <= 0.45 * self.skin)
+        )
+
+    def _moved(self, surface: ContactSurface) -> np.ndarray:
+        """Per held vertex, whether it moved by more than 0.45 of the skin since it was last
+        searched round (two boxes that overlap now were then at most twice that apart per
+        axis, within the skin the search inflated the boxes by; the tenth spared covers
+        rounding)."""
+        return ~(np.abs(surface.x - self._x_at_search).max(axis=1) <= 0.45 * self.skin)
+
+    def search_needed(self, surface: ContactSurface) -> bool:
+        """Whether the candidate pairs may miss a pair whose boxes now overlap: a new halo, no
+        skin or another skin than the search's, or a held vertex moved by more than 0.45 of
+        the skin since it was last searched round."""
+        return self._whole_search_needed(surface) or bool(self._moved(surface).any())
 
     def update(self, surface: ContactSurface) -> None:
-        """Search the candidate pairs of the surface's current state again if
+        """Search the candidate pairs again, round the moved vertices or everywhere, if
         :meth:`search_needed` says so (after ``surface.update()``)."""
-        if self.search_needed(surface):
-            self.pair_a, self.pair_k = candidate_pairs(surface, self.integration, self.skin)
-            self._x_at_search = surface.x.copy()
-            self._search_refreshes = surface.refreshes
-            self._searched_skin = self.skin
-            self.searches += 1
+        if self._whole_search_needed(surface):
+            self._search(surface)
+            return
+        moved = self._moved(surface)
+        if not moved.any():
+            return
+        if self.integration != "area" or surface.tree is None:
+            self._search(surface)
+            return
+        tri_near, tet_near = moved[surface.tri].any(axis=1), moved[surface.tets].any(axis=1)
+        share = PARTIAL_SEARCH_SHARE
+        if tri_near.sum() > share * tri_near.size or tet_near.sum() > share * tet_near.size:
+            self._search(surface)
+            return
+        x = self._x_at_search
+        x[moved] = surface.x[moved]
+        if self._trees is None:
+            self._trees = (AABBTree(x, surface.tets), AABBTree(x, surface.tri))
+        else:
+            for tree in self._trees:
+                tree.refit(x)
+                if tree.needs_rebuild():
+                    tree.rebuild(x)
+        kept = ~(tri_near[self.pair_a] | tet_near[self.pair_k])
+        pa, pk = _round_pairs(
+            x, surface.tri, surface.tets, tri_near, tet_near, *self._trees, self.skin
+        )
+        self.pair_a = np.concatenate((self.pair_a[kept], pa))
+        self.pair_k = np.concatenate((self.pair_k[kept], pk))
+        self._in_search_order = False
+        self.partial_searches += 1
+
+    def _search(self, surface: ContactSurface) -> None:
+        """Search the whole surface; every vertex is searched round at its coordinates now."""
+        self.pair_a, self.pair_k = candidate_pairs(surface, self.integration, self.skin)
+        self._x_at_search = surface.x.copy()
+        self._trees = None
+        self._search_refreshes = surface.refreshes
+        self._searched_skin = self.skin
+        self._in_search_order = True
+        self.searches += 1
 
     def intersecting(self, surface: ContactSurface) -> np.ndarray:
         """Indices of the candidate pairs whose intersection is not empty at the surface's
-        current state (area integration; not kept, see ``ContactOperator``)."""
+        current state, in the order of a whole search (area integration; not kept, see
+        ``ContactOperator``)."""
         pa, pk = self.pair_a, self.pair_k
         if self._searched_skin > 0.0:
             # the pairs of the last search (boxes inflated by the skin) whose boxes overlap
             # now: those a search at this state would find (4 to 5.5 ms for 192k pairs on
             # bench_newton's press, against 34 ms for a search)
             near = overlapping_pairs(surface.x, surface.tri, surface.tets, pa, pk)
-            hit = intersecting(surface.x, surface.tri, surface.kernel_tets, pa[near], pk[near])
-            return near[hit]
+            hit = near[
+                intersecting(surface.x, surface.tri, surface.kernel_tets, pa[near], pk[near])
+            ]
+            if not self._in_search_order:
+                hit = hit[search_order(surface, pa[hit], pk[hit])]
+            return hit
         return intersecting(surface.x, surface.tri, surface.kernel_tets, pa, pk)

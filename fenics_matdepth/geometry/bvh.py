@@ -555,6 +555,14 @@ class AABBTree:
         return self._points
 
     @property
+    def order(self) -> np.ndarray:
+        """(n,) the element indices in tree order (read-only; a rebuild changes it). A query
+        lists each query box's elements in this order."""
+        view = self._order.view()
+        view.flags.writeable = False
+        return view
+
+    @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) corners of the root box (L)."""
         if self.num_nodes == 0:
