@@ -235,15 +235,10 @@ class PairSearch:
         rounding)."""
         return ~(np.abs(surface.x - self._x_at_search).max(axis=1) <= 0.45 * self.skin)
 
-    def search_needed(self, surface: ContactSurface) -> bool:
-        """Whether the candidate pairs may miss a pair whose boxes now overlap: a new halo, no
-        skin or another skin than the search's, or a held vertex moved by more than 0.45 of
-        the skin since it was last searched round."""
-        return self._whole_search_needed(surface) or bool(self._moved(surface).any())
-
     def update(self, surface: ContactSurface) -> None:
-        """Search the candidate pairs again, round the moved vertices or everywhere, if
-        :meth:`search_needed` says so (after ``surface.update()``)."""
+        """Search the candidate pairs again where they may miss a pair whose boxes now
+        overlap (after ``surface.update()``): everywhere after a new halo or skin, round the
+        vertices moved by more than 0.45 of the skin since they were last searched round."""
         if self._whole_search_needed(surface):
             self._search(surface)
             return
