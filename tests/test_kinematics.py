@@ -120,3 +120,41 @@ def test_cell_determinants_of_a_uniform_stretch():
     assert values.size == mesh.topology.index_map(3).size_local
     assert np.allclose(values, 1.5**3, rtol=1e-12)
     assert cells.min(u) == pytest.approx(1.5**3, rel=1e-12)
+
+
+def test_cell_determinants_equal_det_f_of_a_nonuniform_displacement():
+    """Per cell, det F from the signed volumes equals det(I + grad u) of the interpolated P1
+    field evaluated by DOLFINx (a DG0 interpolation of the UFL expression); a displacement
+    that turns a cell inside out gives a negative value, and NaN gives -inf."""
+    import ufl
+
+    mesh = dolfinx.mesh.create_unit_cube(
+        MPI.COMM_WORLD, 3, 3, 3, cell_type=dolfinx.mesh.CellType.tetrahedron
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    u.interpolate(
+        lambda x: np.stack(
+            (0.3 * x[1] ** 2 - 0.2 * x[2], 0.4 * x[0] * x[2], 0.2 * x[0] * x[1] - 0.5 * x[2] ** 2)
+        )
+    )
+    Q = dolfinx.fem.functionspace(mesh, ("DG", 0))
+    det_f = dolfinx.fem.Function(Q)
+    expr = ufl.det(ufl.Identity(3) + ufl.grad(u))
+    det_f.interpolate(dolfinx.fem.Expression(expr, fm.meshing.interpolation_points(Q)))
+    num_owned = mesh.topology.index_map(3).size_local
+    expected = det_f.x.array[np.asarray(Q.dofmap.list)[:num_owned, 0]]
+    cells = fm.kinematics.CellDeterminants(V)
+    values = cells.local_values(u.x.array)
+    assert np.ptp(expected) > 0.3  # the field is far from uniform
+    assert np.allclose(values, expected, rtol=1e-12, atol=1e-12)
+    assert cells.min(u) == pytest.approx(mesh.comm.allreduce(expected.min(), op=MPI.MIN))
+    # the first owned cell's first vertex moved through the opposite face: inverted
+    array = u.x.array.copy()
+    dofs = np.asarray(V.dofmap.list)[0]
+    X = V.tabulate_dof_coordinates()
+    centre = X[dofs[1:]].mean(axis=0)
+    array[3 * dofs[0] : 3 * dofs[0] + 3] += 2.0 * (centre - X[dofs[0]])
+    assert cells.local_values(array)[0] < 0.0
+    array[0] = np.nan
+    assert cells.local_min(array) == -np.inf
