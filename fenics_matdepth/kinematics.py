@@ -187,8 +187,8 @@ class CellDeterminants:
     """Smallest ``det F = det(I + grad u)`` over the cells of a P1 vector displacement.
 
     On affine tetrahedra ``F`` is constant per cell: ``det F = V_current / V_reference`` with
-    signed volumes from the vertex positions. The reference volumes are kept; each call costs a
-    few vector operations per cell (collective).
+    signed volumes from the vertex positions. The reference volumes are kept; each call is one
+    compiled loop over the cells (the solvers call it at every trial state; collective).
 
     Args:
         V: the P1 vector space (dimension 3) of the displacement.
