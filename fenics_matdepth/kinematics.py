@@ -32,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from fenics_matdepth.boundary import p1_dof_coordinates
+from fenics_matdepth.geometry.clip import tet_frame
 
 __all__ = [
     "CellDeterminants",
@@ -158,28 +159,17 @@ def check_function_space(u: dolfinx.fem.Function, what: str = "u") -> None:
 @njit(cache=True, error_model="numpy", fastmath=False)
 def _signed_volumes6(X: np.ndarray, u: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """Six times the signed volume of each tetrahedron ``cells`` (n, 4) of the points ``X + u``
-    (``X`` (m, 3); ``u`` flat, 3 values per point): ``e1 . (e2 x e3)``, ``e_k`` the edges from
-    the cell's first vertex, summed in that order."""
+    (``X`` (m, 3); ``u`` flat, 3 values per point), as the clipping kernels compute it
+    (:func:`~fenics_matdepth.geometry.clip.tet_frame`)."""
     out = np.empty(cells.shape[0])
     for c in range(cells.shape[0]):
         i, j, k, m = cells[c, 0], cells[c, 1], cells[c, 2], cells[c, 3]
-        o0, o1, o2 = X[i, 0] + u[3 * i], X[i, 1] + u[3 * i + 1], X[i, 2] + u[3 * i + 2]
-        a0, a1, a2 = (
-            X[j, 0] + u[3 * j] - o0,
-            X[j, 1] + u[3 * j + 1] - o1,
-            X[j, 2] + u[3 * j + 2] - o2,
-        )
-        b0, b1, b2 = (
-            X[k, 0] + u[3 * k] - o0,
-            X[k, 1] + u[3 * k + 1] - o1,
-            X[k, 2] + u[3 * k + 2] - o2,
-        )
-        c0, c1, c2 = (
-            X[m, 0] + u[3 * m] - o0,
-            X[m, 1] + u[3 * m + 1] - o1,
-            X[m, 2] + u[3 * m + 2] - o2,
-        )
-        out[c] = a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
+        out[c] = tet_frame(
+            X[i, 0] + u[3 * i], X[i, 1] + u[3 * i + 1], X[i, 2] + u[3 * i + 2],
+            X[j, 0] + u[3 * j], X[j, 1] + u[3 * j + 1], X[j, 2] + u[3 * j + 2],
+            X[k, 0] + u[3 * k], X[k, 1] + u[3 * k + 1], X[k, 2] + u[3 * k + 2],
+            X[m, 0] + u[3 * m], X[m, 1] + u[3 * m + 1], X[m, 2] + u[3 * m + 2],
+        )[0]  # fmt: skip
     return out
 
 
