@@ -54,6 +54,23 @@ def _subdomain_ids(ident) -> list[int] | None:
     return [int(i) for i in ident] if isinstance(ident, tuple) else [int(ident)]
 
 
+def _everywhere_numbered(energy: ufl.Form) -> tuple[ufl.Form, int]:
+    """``energy`` with its cell integrals over every cell given an id of their own (one more
+    than the largest), and that id: DOLFINx integrates an integral over every cell over all of
+    them, whatever cells a form is given for it, and a patch's forms are given the patch's
+    (before, a patch of ``psi * ufl.dx`` assembled the whole mesh)."""
+    ids = [i for itg in energy.integrals() for i in _subdomain_ids(itg.subdomain_id()) or []]
+    own = max(ids, default=0) + 1
+    return ufl.Form(
+        [
+            itg.reconstruct(subdomain_id=own)
+            if itg.integral_type() == "cell" and _subdomain_ids(itg.subdomain_id()) is None
+            else itg
+            for itg in energy.integrals()
+        ]
+    ), own
+
+
 class PatchAssembly:
     """Patch models (:meth:`model`) of a contact problem whose bulk energy is ``energy``.
 
@@ -76,6 +93,7 @@ class PatchAssembly:
         #: a patch's trial states whose lowest det F is at most this fraction of the patch's
         #: lowest at its start are refused (0: only inverted cells)
         self.det_floor = 0.0
+        energy, everywhere = _everywhere_numbered(energy)
         residual = ufl.derivative(energy, u, ufl.TestFunction(V))
         jacobian = ufl.derivative(residual, u, ufl.TrialFunction(V))
         self._compiled = [
@@ -96,15 +114,15 @@ class PatchAssembly:
         self.X = V.tabulate_dof_coordinates()
         p = self.X[self.cells]
         self._volumes = np.linalg.det(p[:, 1:] - p[:, :1])  # each cell's, at rest
-        # the cells of each cell integral's subdomain id (-1, everywhere: None)
+        # the cells of each cell integral's subdomain id (everywhere: None)
         self._cell_sets: dict[int, np.ndarray | None] = {}
         held = [np.empty(0, np.int32)]
         for itg in energy.integrals():
             kind, data = itg.integral_type(), itg.subdomain_data()
             ids = _subdomain_ids(itg.subdomain_id())
             if kind == "cell":
-                for ident in [-1] if ids is None else ids:
-                    self._cell_sets[ident] = None if ids is None else data.find(ident)
+                for ident in ids:
+                    self._cell_sets[ident] = None if ident == everywhere else data.find(ident)
             elif kind == "exterior_facet":
                 facets = (
                     dolfinx.mesh.exterior_facet_indices(mesh.topology)

@@ -25,6 +25,7 @@ from hypothesis import settings
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh, interpolation_points
+from fenics_matdepth.meshing import box_tetrahedra
 
 # Property tests draw the same examples on every run and every rank (a CI run must not pass or
 # fail by chance, and MPI ranks must agree); HYPOTHESIS_PROFILE=explore draws new ones.
@@ -151,6 +152,49 @@ def merged_mesh(comm: MPI.Comm, *pieces: tuple[np.ndarray, np.ndarray]) -> dolfi
         cs.append(cells + offset)
         offset += X.shape[0]
     return create_tetrahedral_mesh(comm, np.vstack(cs), np.vstack(xs))
+
+
+def sunk_blocks(comm: MPI.Comm, everywhere: float = 0.0):
+    """A 1 x 1 x 0.5 block (cell tag 1) and a smaller one (tag 2) sunk 0.03 into it, each its
+    own neo-Hookean, the upper one's top pushed on by a spring (an exterior-facet integral),
+    with ``everywhere * |u|^2`` over every cell where ``everywhere`` is not 0; the
+    displacement (zero), the energy, and the wave :func:`sunk_blocks_state` of its vertices."""
+    mesh = merged_mesh(
+        comm,
+        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
+        box_tetrahedra(2, (0.25, 0.2, 0.51), (0.5, 0.55, 0.4)),
+    )
+    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+    u = dolfinx.fem.Function(V)
+    tdim = mesh.topology.dim
+    cell_map = mesh.topology.index_map(tdim)
+    n_cells = cell_map.size_local + cell_map.num_ghosts
+    mid = dolfinx.mesh.compute_midpoints(mesh, tdim, np.arange(n_cells, dtype=np.int32))
+    tags = dolfinx.mesh.meshtags(
+        mesh, tdim, np.arange(n_cells, dtype=np.int32), np.where(mid[:, 2] > 0.5, 2, 1)
+    )
+    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.91))
+    top_tags = dolfinx.mesh.meshtags(mesh, 2, top, np.full(top.size, 7, dtype=np.int32))
+    F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
+    dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)
+    ds = ufl.Measure("ds", domain=mesh, subdomain_data=top_tags)
+    energy = (
+        fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * dx(1)
+        + fm.materials.neo_hookean(F, mu=0.5, kappa=4.0) * dx(2)
+        + 0.5 * 3.0 * (u[2] + 0.05) ** 2 * ds(7)
+    )
+    if everywhere:
+        energy = energy + everywhere * ufl.inner(u, u) * dx
+    return u, energy
+
+
+def sunk_blocks_state(X: np.ndarray) -> np.ndarray:
+    """Displacements (n, 3) of the vertices ``X`` of :func:`sunk_blocks`: a wave (a function of
+    the position: the same state on one process and on several), the upper block sunk 0.03."""
+    waves = np.array([[41.0, 17.0, 29.0], [23.0, 37.0, 13.0], [19.0, 31.0, 43.0]])
+    values = 0.004 * np.sin(X @ waves)
+    values[X[:, 2] > 0.505, 2] -= 0.03
+    return values
 
 
 def clamped_and_moved(

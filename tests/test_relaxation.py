@@ -12,11 +12,10 @@ import dolfinx
 import numpy as np
 import pytest
 import ufl
-from conftest import merged_mesh
+from conftest import sunk_blocks, sunk_blocks_state
 
 import fenics_matdepth as fm
 from fenics_matdepth._mpi import summed
-from fenics_matdepth.meshing import box_tetrahedra
 from fenics_matdepth.patches import PatchModel
 
 pytestmark = pytest.mark.filterwarnings("ignore::fenics_matdepth.DepthDeficiencyWarning")
@@ -117,43 +116,17 @@ def test_a_spread_residual_is_left_alone_and_clamped_dofs_are_never_in_a_patch()
 
 
 def _sunk_blocks(comm=MPI.COMM_SELF):
-    """A 1 x 1 x 0.5 block (cell tag 1) and a smaller one (tag 2) sunk 0.03 into it, the
-    lower one's bottom clamped and the upper one's top pushed on by a spring (an
-    exterior-facet integral), each its own neo-Hookean; the displacement, energy, conditions
-    and reference coordinates, at a state with the Dirichlet values reached."""
-    mesh = merged_mesh(
-        comm,
-        box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
-        box_tetrahedra(2, (0.25, 0.2, 0.51), (0.5, 0.55, 0.4)),
-    )
-    V = dolfinx.fem.functionspace(mesh, ("Lagrange", 1, (3,)))
-    u = dolfinx.fem.Function(V)
-    tdim = mesh.topology.dim
-    cell_map = mesh.topology.index_map(tdim)
-    n_cells = cell_map.size_local + cell_map.num_ghosts
-    mid = dolfinx.mesh.compute_midpoints(mesh, tdim, np.arange(n_cells, dtype=np.int32))
-    tags = dolfinx.mesh.meshtags(
-        mesh, tdim, np.arange(n_cells, dtype=np.int32), np.where(mid[:, 2] > 0.5, 2, 1)
-    )
-    top = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.91))
-    top_tags = dolfinx.mesh.meshtags(mesh, 2, top, np.full(top.size, 7, dtype=np.int32))
-    F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
-    dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)
-    ds = ufl.Measure("ds", domain=mesh, subdomain_data=top_tags)
-    energy = (
-        fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * dx(1)
-        + fm.materials.neo_hookean(F, mu=0.5, kappa=4.0) * dx(2)
-        + 0.5 * 3.0 * (u[2] + 0.05) ** 2 * ds(7)
-    )
-    bottom = dolfinx.mesh.locate_entities_boundary(mesh, 2, lambda x: np.isclose(x[2], 0.0))
+    """The two blocks of ``conftest.sunk_blocks``, the lower one's bottom clamped; the
+    displacement, energy, conditions and reference coordinates, at a state with the Dirichlet
+    values reached."""
+    u, energy = sunk_blocks(comm)
+    V = u.function_space
+    bottom = dolfinx.mesh.locate_entities_boundary(V.mesh, 2, lambda x: np.isclose(x[2], 0.0))
     bcs = [
         dolfinx.fem.dirichletbc(np.zeros(3), dolfinx.fem.locate_dofs_topological(V, 2, bottom), V)
     ]
     X = V.tabulate_dof_coordinates()
-    # a function of the position: the same state on one process and on several
-    waves = np.array([[41.0, 17.0, 29.0], [23.0, 37.0, 13.0], [19.0, 31.0, 43.0]])
-    values = 0.004 * np.sin(X @ waves)
-    values[X[:, 2] > 0.505, 2] -= 0.03
+    values = sunk_blocks_state(X)
     values[np.isclose(X[:, 2], 0.0)] = 0.0
     u.x.array[:] = values.ravel()
     return u, energy, bcs, X
@@ -250,6 +223,15 @@ def test_a_patch_no_contact_pair_reaches_is_the_bulk_alone_and_the_det_floor_hol
             models.append(relaxation._patches.model(dofs))
         model, floored = models
         assert model.pair_a.size == 0 and vertex in dofs // 3
+        # the energy's integral over every cell is assembled over the patch's cells only
+        cell_type = dolfinx.fem.IntegralType.cell
+        for form in (model.energy_form, model.residual_form, model.jacobian_form):
+            assert form.integral_types == {cell_type}
+            (ident,) = [form.ufcx_form.form_integral_ids[0]]
+            held = form._cpp_object.domains(
+                cell_type, ident if dolfinx.__version__.startswith("0.9") else 0
+            )
+            assert np.array_equal(held, model.cells) and 0 < model.cells.size < cells.shape[0] // 2
         gradient = model.gradient(x)
         assert np.abs(gradient).max() > 1e-2
         assert np.allclose(gradient, F.getValues(dofs), rtol=1e-10, atol=1e-14)
