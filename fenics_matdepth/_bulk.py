@@ -21,10 +21,11 @@ from petsc4py import PETSc
 
 import dolfinx
 import numpy as np
+import ufl
 
 from fenics_matdepth._constants import INDEX
 
-__all__ = ["BulkMatrix", "csr_entries"]
+__all__ = ["BulkMatrix", "csr_entries", "fixed_cells", "without_cells"]
 
 
 def csr_entries(csr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,6 +75,8 @@ class BulkMatrix:
         a: compiled bilinear form, test and trial space the same.
         bcs: the Dirichlet conditions.
         dirichlet: sorted global dofs of ``bcs`` (every rank's).
+        assembled: the form assembled, if not ``a``: ``a`` over fewer cells (its pattern is
+            ``a``'s).
     """
 
     def __init__(
@@ -81,8 +84,9 @@ class BulkMatrix:
         a: dolfinx.fem.Form,
         bcs: list[dolfinx.fem.DirichletBC],
         dirichlet: np.ndarray,
+        assembled: dolfinx.fem.Form | None = None,
     ):
-        self.a, self.bcs = a, list(bcs)
+        self.a, self.bcs = (a if assembled is None else assembled), list(bcs)
         self.csr = dolfinx.fem.create_matrix(a)
         data_index, row, col = csr_entries(self.csr)
         bs = self.csr.block_size[0]
@@ -142,3 +146,71 @@ class BulkMatrix:
             addv=PETSc.InsertMode.ADD_VALUES,
             rowmap=self._rows,
         )
+
+
+def fixed_cells(V: dolfinx.fem.FunctionSpace, bcs: list[dolfinx.fem.DirichletBC]) -> np.ndarray:
+    """Whether each of this process's cells (owned, then ghosts) has every dof prescribed by
+    ``bcs``: a mask. A dof counts where its owner prescribes it (collective)."""
+    imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+    marked = dolfinx.la.vector(imap, bs)
+    owned = bs * imap.size_local
+    for bc in bcs:
+        dofs = np.asarray(bc.dof_indices()[0])
+        marked.array[dofs[dofs < owned]] = 1.0
+    marked.scatter_forward()
+    cells = np.asarray(V.dofmap.list)
+    dofs = (bs * cells[:, :, None] + np.arange(bs)).reshape(cells.shape[0], -1)
+    return (marked.array[dofs] == 1.0).all(axis=1)
+
+
+def without_cells(
+    form: ufl.Form,
+    compiled: dolfinx.fem.Form,
+    left_out: np.ndarray,
+    form_compiler_options: dict | None = None,
+    jit_options: dict | None = None,
+) -> dolfinx.fem.Form:
+    """``compiled`` (DOLFINx's form of the UFL ``form``) with the cells of the mask
+    ``left_out`` taken out of its cell integrals over subdomain ids: its other integrals, and
+    the cells it keeps in the order it had them, are the same, so whatever it adds elsewhere
+    is the same to the bit. (An integral over every cell keeps them all: DOLFINx finds its
+    cells itself, whatever it is given.)
+
+    The problems assemble their residual and Jacobian over the cells that hold a free dof:
+    a cell whose every dof is prescribed (a bone moved as a whole by its Dirichlet
+    conditions) adds only to Dirichlet rows and columns, which the conditions overwrite.
+    """
+    types = (dolfinx.fem.IntegralType.cell, dolfinx.fem.IntegralType.exterior_facet)
+    if set(compiled.integral_types) - set(types):
+        raise NotImplementedError(
+            "a form with interior-facet or vertex integrals is assembled over every cell"
+        )
+    cpp = compiled._cpp_object
+    ufcx = compiled.ufcx_form
+    # the integrals' ids, per type, from the compiled form (DOLFINx 0.9 looks an integral's
+    # domain up by its id, 0.10 and later by its position)
+    by_id = dolfinx.__version__.startswith("0.9")
+    subdomains = {}
+    for k, kind in enumerate(types):
+        start, stop = ufcx.form_integral_offsets[k], ufcx.form_integral_offsets[k + 1]
+        entries = []
+        for i in range(stop - start):
+            ident = int(ufcx.form_integral_ids[start + i])
+            entities = np.asarray(cpp.domains(kind, ident if by_id else i), dtype=np.int32)
+            if kind == dolfinx.fem.IntegralType.cell and ident != -1:
+                entities = entities[~left_out[entities]]
+            entries.append((ident, np.ascontiguousarray(entities)))
+        if entries:
+            subdomains[kind] = entries
+    spaces = [argument.ufl_function_space() for argument in form.arguments()]
+    return dolfinx.fem.create_form(
+        dolfinx.fem.compile_form(
+            spaces[0].mesh.comm, form, form_compiler_options=form_compiler_options,
+            jit_options=jit_options,
+        ),
+        spaces,
+        spaces[0].mesh,
+        subdomains,
+        {c: c for c in form.coefficients()},
+        {c: c for c in form.constants()},
+    )  # fmt: skip

@@ -185,10 +185,12 @@ class ContactProblem(SNESCallbacks, _Releasable):
         self.collisions = ContinuousCollision(contact.surface, ccd_entry) if ccd else None
         self.ccd_caps = 0
         self.bcs = list(bcs)
-        self._F = dolfinx.fem.form(F)
-        self._J = dolfinx.fem.form(J if J is not None else ufl.derivative(F, u))
+        J = J if J is not None else ufl.derivative(F, u)
+        self._F, self._J = dolfinx.fem.form(F), dolfinx.fem.form(J)
         self._energy = dolfinx.fem.form(energy) if energy is not None else None
-        self.assembler = SystemAssembler(self._F, self._J, u, contact, self.bcs, self._energy)
+        self.assembler = SystemAssembler(
+            self._F, self._J, u, contact, self.bcs, self._energy, forms=(F, J, {})
+        )
         self.free_bodies = FreeBodyDamping(contact, self.bcs, self.assembler, damp_free_bodies)
         self._watch = self.assembler.watch
         self.timings = dict(self._watch.totals)
@@ -492,7 +494,11 @@ class NonlinearContactProblem(NewtonSolverProblemBase, _Releasable):
         )  # fmt: skip
         self.u = u
         self.contact = contact
-        self.assembler = SystemAssembler(self.L, self.a, u, contact, self.bcs)
+        J = J if J is not None else ufl.derivative(F, u, ufl.TrialFunction(u.function_space))
+        options = {"form_compiler_options": form_compiler_options, "jit_options": jit_options}
+        self.assembler = SystemAssembler(
+            self.L, self.a, u, contact, self.bcs, forms=(F, J, options)
+        )
         # no line search: the damping falls only as far as a Newton step stays short
         self.free_bodies = FreeBodyDamping(
             contact, self.bcs, self.assembler, damp_free_bodies, line_search=False

@@ -9,13 +9,18 @@ from mpi4py import MPI
 import dolfinx
 import dolfinx.fem.petsc
 import numpy as np
+import pytest
 import ufl
-from conftest import clamped_and_moved, dense_matrix, neo_hookean
+from conftest import clamped_and_moved, dense_matrix, neo_hookean, sunk_blocks, sunk_blocks_state
 
-from fenics_matdepth._bulk import BulkMatrix, csr_entries
+import fenics_matdepth as fm
+from fenics_matdepth._bulk import BulkMatrix, csr_entries, fixed_cells
 from fenics_matdepth._compat import create_tetrahedral_mesh
 from fenics_matdepth.contact.assembly import global_dirichlet_dofs
 from fenics_matdepth.meshing import box_tetrahedra
+from fenics_matdepth.system_assembler import SystemAssembler
+
+pytestmark = pytest.mark.filterwarnings("ignore::fenics_matdepth.DepthDeficiencyWarning")
 
 #: Sums in another order than DOLFINx's PETSc assembly: relative to the largest entry.
 RTOL = 1e-13
@@ -102,3 +107,76 @@ def test_csr_entries_are_the_owned_rows():
     dense = u.function_space.mesh.comm.allreduce(local)
     reference = _reference(a, [])
     assert np.abs(dense - reference).max() <= RTOL * np.abs(reference).max()
+
+
+#: the vertices of the lower block below this height are held (its two lowest layers)
+HELD_BELOW = 0.2
+
+
+def _sunk_blocks_lower_held():
+    """The two blocks of ``conftest.sunk_blocks`` with an integral over every cell, the lower
+    block's vertices below HELD_BELOW held by Dirichlet conditions that turn them a little
+    (off their values: at rest), the others displaced by the wave. Returns the displacement,
+    the residual form, the conditions and the energy."""
+    u, energy = sunk_blocks(MPI.COMM_WORLD, everywhere=0.01)
+    V = u.function_space
+    held = dolfinx.fem.locate_dofs_geometrical(V, lambda x: x[2] < HELD_BELOW)
+    turned = dolfinx.fem.Function(V)
+    turned.interpolate(lambda x: np.vstack((-0.02 * x[1], 0.02 * x[0], 0.01 + 0 * x[0])))
+    bcs = [dolfinx.fem.dirichletbc(turned, held)]
+    X = V.tabulate_dof_coordinates()
+    values = sunk_blocks_state(X)
+    values[X[:, 2] < HELD_BELOW] = 0.0
+    u.x.array[:] = values.ravel()
+    residual = ufl.derivative(energy, u, ufl.TestFunction(V))
+    return u, residual, bcs, energy
+
+
+def test_cells_whose_every_dof_is_prescribed_are_left_out_to_the_bit():
+    """The problem assembles its residual and Jacobian over the cells that hold a free dof;
+    they equal those over every cell to the bit, with the Dirichlet dofs off their values
+    (the lifting at work) and at them, serially and on a distributed mesh."""
+    u, residual, bcs, energy = _sunk_blocks_lower_held()
+    V = u.function_space
+    contact = fm.ContactOperator(u, fm.material_depth(V.mesh), penalty=50.0)
+    problem = fm.ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
+    whole = SystemAssembler(problem._F, problem._J, u, contact, bcs)
+    left_out = fixed_cells(V, bcs)
+    num_owned = V.mesh.topology.index_map(3).size_local
+    # a cell is left out exactly where none of its vertices is free (the lowest layer of
+    # cells; the layer above has held and free vertices)
+    held = V.tabulate_dof_coordinates()[:, 2] < HELD_BELOW
+    cell_held = held[np.asarray(V.dofmap.list)]
+    assert np.array_equal(left_out, cell_held.all(axis=1))
+    assert MPI.COMM_WORLD.allreduce(int((cell_held.any(axis=1) & ~left_out).sum())) > 0
+    n_left = int(left_out[:num_owned].sum())
+    assert MPI.COMM_WORLD.allreduce(n_left) > 0
+    mine = problem.assembler
+    assert mine.a_cells is not problem._J and mine.L_cells is not problem._F
+    # the two tags' integrals keep the cells with a free vertex (the one over every cell all)
+    cell = dolfinx.fem.IntegralType.cell
+    ids = (-1, 1, 2) if dolfinx.__version__.startswith("0.9") else range(3)
+    for form in (mine.a_cells, mine.L_cells):
+        kept = sum(form._cpp_object.domains(cell, i).size for i in ids)
+        assert kept == num_owned + (num_owned - n_left)
+    for reached in (False, True):
+        x = u.x.petsc_vec.copy()
+        if reached:
+            dolfinx.fem.petsc.set_bc(x, bcs)
+        vectors, matrices = [], []
+        for assembler in (mine, whole):
+            assembler.set_state(x)
+            b = x.duplicate()
+            assert assembler.residual(x, b)
+            vectors.append(b.getArray().copy())
+            A = assembler.matrix
+            assembler.jacobian(A)
+            matrices.append(A.getValuesCSR())
+            b.destroy()
+        assert MPI.COMM_WORLD.allreduce(np.abs(vectors[0]).max(initial=0.0), op=MPI.MAX) > 0
+        assert np.array_equal(vectors[0], vectors[1])
+        for mine_part, whole_part in zip(*matrices, strict=True):
+            assert np.array_equal(mine_part, whole_part)
+        x.destroy()
+    whole.destroy()
+    problem.destroy()
