@@ -305,7 +305,7 @@ class ContactOperator(FrictionMixin):
             # comes next, which then costs nothing (the energy alone is about 2/3 of the cost)
             r = self._summed(want_hess=False)
         else:
-            r = self._evaluate(False, False)
+            r = self._evaluate(self.integration == "area", False)  # the same, as above
         return self.comm.allreduce(float(np.sum(r["energy"])) + self._friction_energy())
 
     def gradient_array(self) -> tuple[np.ndarray, np.ndarray]:
