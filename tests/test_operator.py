@@ -14,7 +14,7 @@ from conftest import assert_operator_derivatives, merged_mesh, neo_hookean, oper
 
 import fenics_matdepth as fm
 from fenics_matdepth._compat import create_tetrahedral_mesh
-from fenics_matdepth.contact import assembly
+from fenics_matdepth.contact import assembly, evaluation
 from fenics_matdepth.contact.operator import ContactOperator
 from fenics_matdepth.meshing import box_tetrahedra
 
@@ -609,6 +609,24 @@ def test_diagnostics_and_unchanged_state():
     u.x.array[:] *= 1.01
     op.update()
     assert op._evaluate(False, False) is not cached
+
+
+def test_an_augmented_energy_pass_serves_the_residual_after_it():
+    """With the augmented Lagrangian's pressures the energy is the kernel's energy-only pass to
+    the bit, though its pass computes the gradient too, and the residual at the same state
+    takes that pass: no second kernel pass (a line search's accepted state)."""
+    comm = MPI.COMM_WORLD
+    _, V, _, op = _setup(comm, "area")
+    op.set_pressure(np.full(op.num_vertices, 0.3))
+    alone = evaluation.pair_arrays(
+        op.surface, "area", *op._evaluated_pairs(), op.penalty, op.pressure, 0.0, False, False
+    )[0]
+    energy = op.energy()
+    assert energy == comm.allreduce(float(np.sum(alone))) and energy > 0.0
+    passes = op._cache["TrueFalse"]
+    b = operator_residual(op, V)
+    assert op._cache["TrueFalse"] is passes and b.norm() > 0.0
+    b.destroy()
 
 
 @pytest.mark.parametrize("integration", ["area", "collocation"])
