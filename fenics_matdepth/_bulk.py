@@ -159,7 +159,7 @@ def fixed_cells(V: dolfinx.fem.FunctionSpace, bcs: list[dolfinx.fem.DirichletBC]
         marked.array[dofs[dofs < owned]] = 1.0
     marked.scatter_forward()
     cells = np.asarray(V.dofmap.list)
-    dofs = (bs * cells[:, :, None] + np.arange(bs)).reshape(cells.shape[0], -1)
+    dofs = (bs * cells[:, :, None] + np.arange(bs)).reshape(cells.shape[0], bs * cells.shape[1])
     return (marked.array[dofs] == 1.0).all(axis=1)
 
 
