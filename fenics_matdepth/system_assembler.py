@@ -107,10 +107,10 @@ class SystemAssembler:
     ):
         self.L, self.a, self.u, self.contact = L, a, u, contact
         self.bcs = list(bcs)
-        #: the forms the residual and the Jacobian are assembled with: ``L`` and ``a`` without
-        #: the cells whose every dof is prescribed (a cell of a bone moved as a whole adds only
-        #: to Dirichlet rows and columns, which the conditions overwrite; on the knee 17 % of
-        #: the cells), where ``forms`` are given; ``a`` gives the pattern
+        # the forms the residual and the Jacobian are assembled with: ``L`` and ``a`` without
+        # the cells whose every dof is prescribed (a cell of a bone moved as a whole adds only
+        # to Dirichlet rows and columns, which the conditions overwrite; on the knee 17 % of
+        # the cells), where ``forms`` are given; ``a`` gives the pattern
         self.L_cells, self.a_cells = L, a
         self.comm = u.function_space.mesh.comm
         left_out = fixed_cells(u.function_space, self.bcs) if forms is not None else None
