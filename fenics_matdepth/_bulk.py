@@ -171,10 +171,14 @@ def without_cells(
     jit_options: dict | None = None,
 ) -> dolfinx.fem.Form:
     """``compiled`` (DOLFINx's form of the UFL ``form``) with the cells of the mask
-    ``left_out`` taken out of its cell integrals over subdomain ids: its other integrals, and
-    the cells it keeps in the order it had them, are the same, so whatever it adds elsewhere
-    is the same to the bit. (An integral over every cell keeps them all: DOLFINx finds its
-    cells itself, whatever it is given.)
+    ``left_out`` taken out of its cell integrals: its other integrals, and the cells it keeps
+    in the order it had them, are the same, so whatever it adds elsewhere is the same to the
+    bit.
+
+    DOLFINx finds the cells of an integral over every cell (id -1) itself, whatever it is
+    given, so such an integral is compiled under an id of its own, one below the smallest
+    other cell id, which keeps it first in the order DOLFINx assembles the integrals in; where
+    the smallest other id is 0 it keeps every cell.
 
     The problems assemble their residual and Jacobian over the cells that hold a free dof:
     a cell whose every dof is prescribed (a bone moved as a whole by its Dirichlet
@@ -190,6 +194,8 @@ def without_cells(
     # the integrals' ids, per type, from the compiled form (DOLFINx 0.9 looks an integral's
     # domain up by its id, 0.10 and later by its position)
     by_id = dolfinx.__version__.startswith("0.9")
+    cell_ids = [int(ufcx.form_integral_ids[i]) for i in range(ufcx.form_integral_offsets[1])]
+    own = min([i for i in cell_ids if i != -1], default=1) - 1  # for the one over every cell
     subdomains = {}
     for k, kind in enumerate(types):
         start, stop = ufcx.form_integral_offsets[k], ufcx.form_integral_offsets[k + 1]
@@ -197,11 +203,22 @@ def without_cells(
         for i in range(stop - start):
             ident = int(ufcx.form_integral_ids[start + i])
             entities = np.asarray(cpp.domains(kind, ident if by_id else i), dtype=np.int32)
-            if kind == dolfinx.fem.IntegralType.cell and ident != -1:
+            if kind == dolfinx.fem.IntegralType.cell and (ident != -1 or own >= 0):
                 entities = entities[~left_out[entities]]
+                ident = own if ident == -1 else ident
             entries.append((ident, np.ascontiguousarray(entities)))
         if entries:
             subdomains[kind] = entries
+    if -1 in cell_ids and own >= 0:
+        form = ufl.Form(
+            [
+                itg.reconstruct(subdomain_id=own)
+                if itg.integral_type() == "cell"
+                and itg.subdomain_id() in ("everywhere", "otherwise")
+                else itg
+                for itg in form.integrals()
+            ]
+        )
     spaces = [argument.ufl_function_space() for argument in form.arguments()]
     return dolfinx.fem.create_form(
         dolfinx.fem.compile_form(

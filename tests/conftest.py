@@ -154,11 +154,12 @@ def merged_mesh(comm: MPI.Comm, *pieces: tuple[np.ndarray, np.ndarray]) -> dolfi
     return create_tetrahedral_mesh(comm, np.vstack(cs), np.vstack(xs))
 
 
-def sunk_blocks(comm: MPI.Comm, everywhere: float = 0.0):
+def sunk_blocks(comm: MPI.Comm, everywhere: float = 0.0, tagged: bool = True):
     """A 1 x 1 x 0.5 block (cell tag 1) and a smaller one (tag 2) sunk 0.03 into it, each its
-    own neo-Hookean, the upper one's top pushed on by a spring (an exterior-facet integral),
-    with ``everywhere * |u|^2`` over every cell where ``everywhere`` is not 0; the
-    displacement (zero), the energy, and the wave :func:`sunk_blocks_state` of its vertices."""
+    own neo-Hookean (``tagged=False``: one neo-Hookean over every cell, ``psi * ufl.dx``),
+    the upper one's top pushed on by a spring (an exterior-facet integral), with
+    ``everywhere * |u|^2`` over every cell where ``everywhere`` is not 0; the displacement
+    (zero) and the energy (:func:`sunk_blocks_state` gives a state)."""
     mesh = merged_mesh(
         comm,
         box_tetrahedra(3, (0.0, 0.0, 0.0), (1.0, 1.0, 0.5)),
@@ -178,11 +179,13 @@ def sunk_blocks(comm: MPI.Comm, everywhere: float = 0.0):
     F = ufl.variable(ufl.Identity(3) + ufl.grad(u))
     dx = ufl.Measure("dx", domain=mesh, subdomain_data=tags)
     ds = ufl.Measure("ds", domain=mesh, subdomain_data=top_tags)
-    energy = (
-        fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * dx(1)
-        + fm.materials.neo_hookean(F, mu=0.5, kappa=4.0) * dx(2)
-        + 0.5 * 3.0 * (u[2] + 0.05) ** 2 * ds(7)
-    )
+    if tagged:
+        energy = fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * dx(1) + fm.materials.neo_hookean(
+            F, mu=0.5, kappa=4.0
+        ) * dx(2)
+    else:
+        energy = fm.materials.neo_hookean(F, mu=1.0, kappa=10.0) * dx
+    energy = energy + 0.5 * 3.0 * (u[2] + 0.05) ** 2 * ds(7)
     if everywhere:
         energy = energy + everywhere * ufl.inner(u, u) * dx
     return u, energy

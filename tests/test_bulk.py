@@ -113,12 +113,13 @@ def test_csr_entries_are_the_owned_rows():
 HELD_BELOW = 0.2
 
 
-def _sunk_blocks_lower_held():
-    """The two blocks of ``conftest.sunk_blocks`` with an integral over every cell, the lower
-    block's vertices below HELD_BELOW held by Dirichlet conditions that turn them a little
-    (off their values: at rest), the others displaced by the wave. Returns the displacement,
-    the residual form, the conditions and the energy."""
-    u, energy = sunk_blocks(MPI.COMM_WORLD, everywhere=0.01)
+def _sunk_blocks_lower_held(tagged: bool):
+    """The two blocks of ``conftest.sunk_blocks`` with an integral over every cell (and their
+    materials over cell tags, or one material over every cell), the lower block's vertices
+    below HELD_BELOW held by Dirichlet conditions that turn them a little (off their values:
+    at rest), the others displaced by the wave. Returns the displacement, the residual form,
+    the conditions and the energy."""
+    u, energy = sunk_blocks(MPI.COMM_WORLD, everywhere=0.01 if tagged else 0.0, tagged=tagged)
     V = u.function_space
     held = dolfinx.fem.locate_dofs_geometrical(V, lambda x: x[2] < HELD_BELOW)
     turned = dolfinx.fem.Function(V)
@@ -132,11 +133,13 @@ def _sunk_blocks_lower_held():
     return u, residual, bcs, energy
 
 
-def test_cells_whose_every_dof_is_prescribed_are_left_out_to_the_bit():
+@pytest.mark.parametrize("tagged", [True, False])
+def test_cells_whose_every_dof_is_prescribed_are_left_out_to_the_bit(tagged):
     """The problem assembles its residual and Jacobian over the cells that hold a free dof;
     they equal those over every cell to the bit, with the Dirichlet dofs off their values
-    (the lifting at work) and at them, serially and on a distributed mesh."""
-    u, residual, bcs, energy = _sunk_blocks_lower_held()
+    (the lifting at work) and at them, serially and on a distributed mesh: for integrals over
+    cell tags and one over every cell, and for one over every cell alone."""
+    u, residual, bcs, energy = _sunk_blocks_lower_held(tagged)
     V = u.function_space
     contact = fm.ContactOperator(u, fm.material_depth(V.mesh), penalty=50.0)
     problem = fm.ContactProblem(residual, u, contact, bcs=bcs, energy=energy)
@@ -153,12 +156,17 @@ def test_cells_whose_every_dof_is_prescribed_are_left_out_to_the_bit():
     assert MPI.COMM_WORLD.allreduce(n_left) > 0
     mine = problem.assembler
     assert mine.a_cells is not problem._J and mine.L_cells is not problem._F
-    # the two tags' integrals keep the cells with a free vertex (the one over every cell all)
+    # each cell integral keeps the cells with a free vertex: the one over every cell is
+    # compiled under id 0, below the tags 1 and 2
     cell = dolfinx.fem.IntegralType.cell
-    ids = (-1, 1, 2) if dolfinx.__version__.startswith("0.9") else range(3)
+    ids = (0, 1, 2) if tagged else (0,)
     for form in (mine.a_cells, mine.L_cells):
-        kept = sum(form._cpp_object.domains(cell, i).size for i in ids)
-        assert kept == num_owned + (num_owned - n_left)
+        assert [int(form.ufcx_form.form_integral_ids[i]) for i in range(len(ids))] == list(ids)
+        by_id = dolfinx.__version__.startswith("0.9")
+        kept = sum(
+            form._cpp_object.domains(cell, i if by_id else k).size for k, i in enumerate(ids)
+        )
+        assert kept == (2 if tagged else 1) * (num_owned - n_left)  # the tags split the cells
     for reached in (False, True):
         x = u.x.petsc_vec.copy()
         if reached:
