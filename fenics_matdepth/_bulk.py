@@ -23,9 +23,10 @@ import dolfinx
 import numpy as np
 import ufl
 
+from fenics_matdepth._compat import integral_domains
 from fenics_matdepth._constants import INDEX
 
-__all__ = ["BulkMatrix", "csr_entries", "fixed_cells", "without_cells"]
+__all__ = ["BulkMatrix", "csr_entries", "everywhere_numbered", "fixed_cells", "without_cells"]
 
 
 def csr_entries(csr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -148,19 +149,32 @@ class BulkMatrix:
         )
 
 
-def fixed_cells(V: dolfinx.fem.FunctionSpace, bcs: list[dolfinx.fem.DirichletBC]) -> np.ndarray:
-    """Whether each of this process's cells (owned, then ghosts) has every dof prescribed by
-    ``bcs``: a mask. A dof counts where its owner prescribes it (collective)."""
+def fixed_cells(V: dolfinx.fem.FunctionSpace, owned_dirichlet: np.ndarray) -> np.ndarray:
+    """Whether each of this process's cells (owned, then ghosts) has every dof prescribed: a
+    mask, from the owned (process-local, unrolled) Dirichlet dofs
+    (:func:`~fenics_matdepth.contact.assembly.owned_dirichlet_dofs`), so that a dof counts
+    where its owner prescribes it (collective)."""
     imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
     marked = dolfinx.la.vector(imap, bs)
-    owned = bs * imap.size_local
-    for bc in bcs:
-        dofs = np.asarray(bc.dof_indices()[0])
-        marked.array[dofs[dofs < owned]] = 1.0
+    marked.array[owned_dirichlet] = 1.0
     marked.scatter_forward()
     cells = np.asarray(V.dofmap.list)
     dofs = (bs * cells[:, :, None] + np.arange(bs)).reshape(cells.shape[0], bs * cells.shape[1])
     return (marked.array[dofs] == 1.0).all(axis=1)
+
+
+def everywhere_numbered(form: ufl.Form, ident: int) -> ufl.Form:
+    """``form`` with its cell integrals over every cell under the subdomain id ``ident``: their
+    cells can then be given (DOLFINx finds an id -1 integral's cells itself, whatever cells a
+    form is given for it)."""
+    return ufl.Form(
+        [
+            itg.reconstruct(subdomain_id=ident)
+            if itg.integral_type() == "cell" and itg.subdomain_id() in ("everywhere", "otherwise")
+            else itg
+            for itg in form.integrals()
+        ]
+    )
 
 
 def without_cells(
@@ -175,50 +189,28 @@ def without_cells(
     in the order it had them, are the same, so whatever it adds elsewhere is the same to the
     bit.
 
-    DOLFINx finds the cells of an integral over every cell (id -1) itself, whatever it is
-    given, so such an integral is compiled under an id of its own, one below the smallest
-    other cell id, which keeps it first in the order DOLFINx assembles the integrals in; where
-    the smallest other id is 0 it keeps every cell.
+    An integral over every cell is compiled under an id of its own (:func:`everywhere_numbered`),
+    one below the smallest other cell id, which keeps it first in the order DOLFINx assembles
+    the integrals in; where the smallest other id is 0 it keeps every cell.
 
     The problems assemble their residual and Jacobian over the cells that hold a free dof:
     a cell whose every dof is prescribed (a bone moved as a whole by its Dirichlet
     conditions) adds only to Dirichlet rows and columns, which the conditions overwrite.
     """
-    types = (dolfinx.fem.IntegralType.cell, dolfinx.fem.IntegralType.exterior_facet)
-    if set(compiled.integral_types) - set(types):
+    cell, facet = dolfinx.fem.IntegralType.cell, dolfinx.fem.IntegralType.exterior_facet
+    if set(compiled.integral_types) - {cell, facet}:
         raise NotImplementedError(
             "a form with interior-facet or vertex integrals is assembled over every cell"
         )
-    cpp = compiled._cpp_object
-    ufcx = compiled.ufcx_form
-    # the integrals' ids, per type, from the compiled form (DOLFINx 0.9 looks an integral's
-    # domain up by its id, 0.10 and later by its position)
-    by_id = dolfinx.__version__.startswith("0.9")
-    cell_ids = [int(ufcx.form_integral_ids[i]) for i in range(ufcx.form_integral_offsets[1])]
-    own = min([i for i in cell_ids if i != -1], default=1) - 1  # for the one over every cell
-    subdomains = {}
-    for k, kind in enumerate(types):
-        start, stop = ufcx.form_integral_offsets[k], ufcx.form_integral_offsets[k + 1]
-        entries = []
-        for i in range(stop - start):
-            ident = int(ufcx.form_integral_ids[start + i])
-            entities = np.asarray(cpp.domains(kind, ident if by_id else i), dtype=np.int32)
-            if kind == dolfinx.fem.IntegralType.cell and (ident != -1 or own >= 0):
-                entities = entities[~left_out[entities]]
-                ident = own if ident == -1 else ident
-            entries.append((ident, np.ascontiguousarray(entities)))
-        if entries:
-            subdomains[kind] = entries
-    if -1 in cell_ids and own >= 0:
-        form = ufl.Form(
-            [
-                itg.reconstruct(subdomain_id=own)
-                if itg.integral_type() == "cell"
-                and itg.subdomain_id() in ("everywhere", "otherwise")
-                else itg
-                for itg in form.integrals()
-            ]
-        )
+    cells = integral_domains(compiled, cell)
+    own = min([i for i, _ in cells if i != -1], default=1) - 1
+    renumber = own >= 0 and any(i == -1 for i, _ in cells)
+    if renumber:
+        form = everywhere_numbered(form, own)
+    subdomains = {
+        cell: [(own if renumber and i == -1 else i, e[~left_out[e]]) for i, e in cells],
+        facet: [(i, np.ascontiguousarray(e)) for i, e in integral_domains(compiled, facet)],
+    }
     spaces = [argument.ufl_function_space() for argument in form.arguments()]
     return dolfinx.fem.create_form(
         dolfinx.fem.compile_form(
@@ -227,7 +219,7 @@ def without_cells(
         ),
         spaces,
         spaces[0].mesh,
-        subdomains,
+        {kind: entries for kind, entries in subdomains.items() if entries},
         {c: c for c in form.coefficients()},
         {c: c for c in form.constants()},
     )  # fmt: skip

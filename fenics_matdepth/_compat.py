@@ -20,6 +20,7 @@ __all__ = [
     "geometry_cmap",
     "geometry_dofmap",
     "gmsh_model_to_mesh",
+    "integral_domains",
     "interpolation_points",
     "set_lag_preconditioner",
     "show_warnings",
@@ -298,6 +299,22 @@ def interpolation_points(V):
     """
     points = V.element.interpolation_points
     return points() if callable(points) else points
+
+
+def integral_domains(form, kind) -> list[tuple[int, object]]:
+    """``(subdomain id, integration entities)`` of each of the compiled ``form``'s integrals of
+    type ``kind`` (cell or exterior facet), in the order DOLFINx assembles them (ids ascending,
+    -1 first: over every cell or facet). DOLFINx 0.9 looks an integral's entities up by its
+    id, 0.10 and later by its position."""
+    ufcx = form.ufcx_form
+    k = {dolfinx.fem.IntegralType.cell: 0, dolfinx.fem.IntegralType.exterior_facet: 1}[kind]
+    start, stop = ufcx.form_integral_offsets[k], ufcx.form_integral_offsets[k + 1]
+    out = []
+    for position in range(stop - start):
+        ident = int(ufcx.form_integral_ids[start + position])
+        key = ident if DOLFINX_VERSION < (0, 10) else position
+        out.append((ident, form._cpp_object.domains(kind, key)))
+    return out
 
 
 def bc_constrains_space(bc, V) -> bool:

@@ -36,6 +36,7 @@ import dolfinx
 import numpy as np
 import ufl
 
+from fenics_matdepth._bulk import everywhere_numbered
 from fenics_matdepth._mpi import positions, summed
 from fenics_matdepth.contact import evaluation, pairs
 from fenics_matdepth.geometry.intersect import near_pairs
@@ -52,23 +53,6 @@ def _subdomain_ids(ident) -> list[int] | None:
     if ident in ("everywhere", "otherwise"):
         return None
     return [int(i) for i in ident] if isinstance(ident, tuple) else [int(ident)]
-
-
-def _everywhere_numbered(energy: ufl.Form) -> tuple[ufl.Form, int]:
-    """``energy`` with its cell integrals over every cell given an id of their own (one more
-    than the largest), and that id: DOLFINx integrates an integral over every cell over all of
-    them, whatever cells a form is given for it, and a patch's forms are given the patch's
-    (before, a patch of ``psi * ufl.dx`` assembled the whole mesh)."""
-    ids = [i for itg in energy.integrals() for i in _subdomain_ids(itg.subdomain_id()) or []]
-    own = max(ids, default=0) + 1
-    return ufl.Form(
-        [
-            itg.reconstruct(subdomain_id=own)
-            if itg.integral_type() == "cell" and _subdomain_ids(itg.subdomain_id()) is None
-            else itg
-            for itg in energy.integrals()
-        ]
-    ), own
 
 
 class PatchAssembly:
@@ -93,7 +77,12 @@ class PatchAssembly:
         #: a patch's trial states whose lowest det F is at most this fraction of the patch's
         #: lowest at its start are refused (0: only inverted cells)
         self.det_floor = 0.0
-        energy, everywhere = _everywhere_numbered(energy)
+        # an integral over every cell under an id of its own, one more than the largest: a
+        # patch's forms are given the patch's cells (before, a patch of psi * ufl.dx assembled
+        # the whole mesh)
+        ids = [i for itg in energy.integrals() for i in _subdomain_ids(itg.subdomain_id()) or []]
+        everywhere = max(ids, default=0) + 1
+        energy = everywhere_numbered(energy, everywhere)
         residual = ufl.derivative(energy, u, ufl.TestFunction(V))
         jacobian = ufl.derivative(residual, u, ufl.TrialFunction(V))
         self._compiled = [

@@ -113,7 +113,9 @@ class SystemAssembler:
         # the cells), where ``forms`` are given; ``a`` gives the pattern
         self.L_cells, self.a_cells = L, a
         self.comm = u.function_space.mesh.comm
-        left_out = fixed_cells(u.function_space, self.bcs) if forms is not None else None
+        left_out = None
+        if forms is not None:
+            left_out = fixed_cells(u.function_space, assembly.owned_dirichlet_dofs(self.bcs))
         if left_out is not None and self.comm.allreduce(bool(left_out.any()), op=MPI.LOR):
             F_ufl, J_ufl, options = forms
             try:

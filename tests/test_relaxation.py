@@ -15,6 +15,7 @@ import ufl
 from conftest import sunk_blocks, sunk_blocks_state
 
 import fenics_matdepth as fm
+from fenics_matdepth._compat import integral_domains
 from fenics_matdepth._mpi import summed
 from fenics_matdepth.patches import PatchModel
 
@@ -227,10 +228,7 @@ def test_a_patch_no_contact_pair_reaches_is_the_bulk_alone_and_the_det_floor_hol
         cell_type = dolfinx.fem.IntegralType.cell
         for form in (model.energy_form, model.residual_form, model.jacobian_form):
             assert form.integral_types == {cell_type}
-            (ident,) = [form.ufcx_form.form_integral_ids[0]]
-            held = form._cpp_object.domains(
-                cell_type, ident if dolfinx.__version__.startswith("0.9") else 0
-            )
+            ((_, held),) = integral_domains(form, cell_type)
             assert np.array_equal(held, model.cells) and 0 < model.cells.size < cells.shape[0] // 2
         gradient = model.gradient(x)
         assert np.abs(gradient).max() > 1e-2
