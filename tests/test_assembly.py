@@ -7,6 +7,7 @@ from __future__ import annotations
 from mpi4py import MPI
 
 import dolfinx
+import dolfinx.fem.petsc
 import numpy as np
 import ufl
 from conftest import dense_matrix
@@ -150,3 +151,42 @@ def test_couplings_outside_the_pattern_are_counted():
     outside = (verts[:, :, None] == v) ^ (verts[:, None, :] == v)
     assert missing == np.count_nonzero(outside) > 0
     assert np.array_equal(pos < 0, outside)
+
+
+def _pattern(A) -> tuple[np.ndarray, np.ndarray]:
+    """The owned rows' CSR pattern (row pointer, global columns) of ``A``."""
+    indptr, cols, _ = A.getValuesCSR()
+    return indptr.copy(), cols.copy()
+
+
+def test_a_kept_bulk_pattern_builds_the_same_matrix():
+    """``create_matrix`` from a :class:`~assembly.BulkPattern` made once and kept (as the
+    operator keeps it for its rebuilds) gives the pattern it gives from the form, for other
+    contact couplings too; ``BulkPattern.of`` keeps it for that form only."""
+    V, bcs, surface, verts, _, _ = _model()
+    comm, nv = surface.comm, surface.num_vertices
+    g = surface.global_vertex[verts]
+    a = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    dirichlet = assembly.global_dirichlet_dofs(comm, V, bcs)
+    bulk = assembly.BulkPattern.of(a, nv, None)
+    assert assembly.BulkPattern.of(a, nv, bulk) is bulk
+    other = dolfinx.fem.form(ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx)
+    assert assembly.BulkPattern.of(other, nv, bulk).form is other
+    # without contact couplings, the pattern is that of DOLFINx's assembled matrix
+    reference = dolfinx.fem.petsc.assemble_matrix(a)
+    reference.assemble()
+    A = assembly.create_matrix(comm, bulk, np.empty(0, dtype=np.int64), nv)
+    for p, q in zip(_pattern(A), _pattern(reference), strict=True):
+        assert np.array_equal(p, q)
+    A.destroy()
+    reference.destroy()
+    for rows in (g, g[: g.shape[0] // 2]):  # two sets of contact couplings
+        keys = np.unique((rows[:, :, None] * nv + rows[:, None, :]).ravel())
+        for marked in (None, dirichlet):
+            A = assembly.create_matrix(comm, a, keys, nv, marked)
+            B = assembly.create_matrix(comm, bulk, keys, nv, marked)
+            assert all(np.array_equal(p, q) for p, q in zip(_pattern(A), _pattern(B), strict=True))
+            assert A.getSizes() == B.getSizes() and A.getBlockSize() == B.getBlockSize()
+            assert np.array_equal(A.getLGMap()[0].getIndices(), B.getLGMap()[0].getIndices())
+            A.destroy()
+            B.destroy()

@@ -16,6 +16,7 @@ from test_operator import _two_boxes
 
 import fenics_matdepth as fm
 from fenics_matdepth.contact.pairs import (
+    PairSearch,
     candidate_pairs,
     coupling_keys,
     pair_vertices,
@@ -201,3 +202,29 @@ def test_pattern_keys_hold_the_touching_pairs():
     # left out: the pattern is smaller than the boxes' couplings
     total = surface.comm.allreduce(keys.size)
     assert total < surface.comm.allreduce(couplings(verts).size)
+
+
+def test_the_pattern_takes_the_pair_search_only_when_it_searched_this_state():
+    """``pattern_keys(..., search)`` takes the search's candidates exactly when they are a
+    whole search with the pattern's margin at the surface's current coordinates; then the keys
+    are those of a search of its own. After a move, or a search round the moved vertices
+    only, or with another skin, the search's pairs are not offered."""
+    s = two_box_surface("area")
+    margin = s.margin
+    search = PairSearch("area", margin)
+    search.update(s)  # the first update searches the whole surface
+    found = search.searched_now(s, margin)
+    assert found is not None
+    expected = candidate_pairs(s, "area", margin)
+    assert all(np.array_equal(f, e) for f, e in zip(found, expected, strict=True))
+    assert np.array_equal(pattern_keys(s, "area", margin, search), pattern_keys(s, "area", margin))
+    assert search.searched_now(s, 2.0 * margin) is None  # another margin
+    # a move of one vertex by more than half the skin: the search goes round it only
+    x0 = s.x.copy()
+    s.x[0] += 0.6 * margin
+    assert search.searched_now(s, margin) is None  # the coordinates changed
+    search.update(s)
+    assert search.partial_searches == 1 and search.searched_now(s, margin) is None
+    s.x[:] = x0
+    assert search.searched_now(s, margin) is None  # the pairs are no whole search's now
+    assert np.array_equal(pattern_keys(s, "area", margin, search), pattern_keys(s, "area", margin))

@@ -24,6 +24,7 @@ from fenics_matdepth.contact.kernels.fastmath import FMA
 from fenics_matdepth.contact.surface import ContactSurface
 
 __all__ = [
+    "BulkPattern",
     "add_jacobian_blocks",
     "add_lifting_pairs",
     "coupling_positions",
@@ -460,9 +461,49 @@ def insert_blocks(
         A.setValuesIJV(indptr, cols, vals, addv=PETSc.InsertMode.ADD_VALUES, rowmap=rows)
 
 
+class BulkPattern:
+    """The bulk form's sparsity pattern as :func:`create_matrix` needs it, made once per form:
+    the vertex-coupling keys ``vi * num_vertices + vj`` of this rank's rows, sorted and unique,
+    and the dofs' layout. The mesh does not change, so a matrix rebuilt for new contact
+    couplings reuses it (the DOLFINx pattern and its keys: 15 to 20 ms on the knee).
+
+    Args:
+        a: the compiled bulk Jacobian form.
+        num_vertices: global number of vertices.
+    """
+
+    @classmethod
+    def of(cls, a: dolfinx.fem.Form, num_vertices: int, kept: BulkPattern | None) -> BulkPattern:
+        """``kept`` where it is ``a``'s, else ``a``'s made now."""
+        return kept if kept is not None and kept.form is a else cls(a, num_vertices)
+
+    def __init__(self, a: dolfinx.fem.Form, num_vertices: int):
+        self.form = a
+        csr = dolfinx.fem.create_matrix(a)
+        self.bs = csr.block_size[0]
+        self.row_map = csr.index_map(0)
+        self.b0, b1 = self.row_map.local_range
+        self.n_blocks = b1 - self.b0
+        indptr = np.asarray(csr.indptr[: self.n_blocks + 1], dtype=INDEX)
+        col_map = csr.index_map(1)
+        n_cols = col_map.size_local + col_map.num_ghosts
+        global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
+        cols = global_block[np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)]
+        rows = np.repeat(np.arange(self.b0, b1, dtype=INDEX), np.diff(indptr))
+        self.keys = np.unique(rows * num_vertices + cols)
+        # sizes and local-to-global map from the dofs' index map, as
+        # dolfinx.fem.petsc.create_matrix sets them (so that its assemble_matrix can add to A)
+        imap = a.function_spaces[0].dofmap.index_map
+        self.bs_space = a.function_spaces[0].dofmap.index_map_bs
+        self.size = (self.bs_space * imap.size_local, self.bs_space * imap.size_global)
+        self.held = imap.local_to_global(
+            np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
+        ).astype(PETSc.IntType)
+
+
 def create_matrix(
     comm: MPI.Comm,
-    a: dolfinx.fem.Form,
+    a: dolfinx.fem.Form | BulkPattern,
     keys: np.ndarray,
     num_vertices: int,
     dirichlet: np.ndarray | None = None,
@@ -471,7 +512,8 @@ def create_matrix(
 
     Args:
         comm: the mesh communicator.
-        a: the compiled bulk Jacobian form.
+        a: the compiled bulk Jacobian form, or its :class:`BulkPattern` (kept by a caller
+            that rebuilds the matrix).
         keys: this rank's global vertex-coupling keys ``vi * num_vertices + vj``.
         num_vertices: global number of vertices.
         dirichlet: sorted global Dirichlet dofs (every rank's), or None. Their rows and
@@ -483,16 +525,12 @@ def create_matrix(
         (collective).
     """
     # the bulk pattern from DOLFINx's native CSR matrix, without assembling the form (which
-    # took 0.57 s at 172k cells); sizes and local-to-global map from the dofs' index map, as
-    # dolfinx.fem.petsc.create_matrix sets them (so that its assemble_matrix can add to A)
-    imap = a.function_spaces[0].dofmap.index_map
-    bs = a.function_spaces[0].dofmap.index_map_bs
-    csr_ptr, cols = _pattern_csr(comm, dolfinx.fem.create_matrix(a), keys, num_vertices, dirichlet)
-    held = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
-    lgmap = PETSc.LGMap().create(held.astype(PETSc.IntType), bsize=bs, comm=comm)
+    # took 0.57 s at 172k cells)
+    bulk = a if isinstance(a, BulkPattern) else BulkPattern(a, num_vertices)
+    csr_ptr, cols = _pattern_csr(comm, bulk, keys, num_vertices, dirichlet)
+    lgmap = PETSc.LGMap().create(bulk.held, bsize=bulk.bs_space, comm=comm)
     A = PETSc.Mat().create(comm=comm)
-    size = (bs * imap.size_local, bs * imap.size_global)
-    A.setSizes((size, size), bsize=bs)
+    A.setSizes((bulk.size, bulk.size), bsize=bulk.bs_space)
     A.setType(PETSc.Mat.Type.AIJ)
     A.setPreallocationCSR((csr_ptr.astype(PETSc.IntType), cols.astype(PETSc.IntType)))
     A.setLGMap(lgmap, lgmap)
@@ -507,35 +545,27 @@ def create_matrix(
 
 def _pattern_csr(
     comm: MPI.Comm,
-    csr,
+    bulk: BulkPattern,
     keys: np.ndarray,
     num_vertices: int,
     dirichlet: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The owned rows' pattern of :func:`create_matrix`: its CSR row pointer (process-local
-    rows) and global columns, from the bulk pattern (``csr``, DOLFINx's blocked MatrixCSR) and
-    the contact vertex couplings ``keys`` (any rank's rows; collective).
+    rows) and global columns, from the bulk pattern's keys and the contact vertex couplings
+    ``keys`` (any rank's rows; collective).
 
     The two are joined as vertex couplings (each a ``bs x bs`` block), one key per block, and
     only then written out per dof: a ninth of the entries to sort (on a 33.6k-tetrahedron box
     with 655k contact couplings, 0.17 s where joining the dof entries took 1 s)."""
-    bs = csr.block_size[0]
-    row_map, col_map = csr.index_map(0), csr.index_map(1)
-    b0, b1 = row_map.local_range
-    n_blocks = b1 - b0
-    indptr = np.asarray(csr.indptr[: n_blocks + 1], dtype=INDEX)
-    n_cols = col_map.size_local + col_map.num_ghosts
-    global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
-    bulk_cols = global_block[np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)]
-    bulk_rows = np.repeat(np.arange(b0, b1, dtype=INDEX), np.diff(indptr))
+    bs, b0, n_blocks = bulk.bs, bulk.b0, bulk.n_blocks
     # each contact coupling to the rank owning its row
     keys = np.asarray(keys, dtype=INDEX)
-    ranges = np.asarray(comm.allgather(b1), dtype=INDEX)
+    ranges = np.asarray(comm.allgather(b0 + n_blocks), dtype=INDEX)
     owner = np.searchsorted(ranges, keys // num_vertices, side="right")
     order = np.argsort(owner, kind="stable")
     splits = np.cumsum(np.bincount(owner, minlength=comm.size))[:-1]
     received = comm.alltoall(np.split(keys[order], splits))
-    blocks = np.unique(np.concatenate([bulk_rows * num_vertices + bulk_cols] + received))
+    blocks = np.unique(np.concatenate([bulk.keys] + received))
     # per block row g (its blocks in column order), dof rows bs g .. bs g + bs - 1 each hold
     # the columns bs c .. bs c + bs - 1 of every block c of the row
     block_row = blocks // num_vertices - b0
@@ -549,7 +579,7 @@ def _pattern_csr(
     if dirichlet is None:
         return ptr, cols
     rows = row + bs * b0
-    marked = np.zeros(bs * row_map.size_global, dtype=bool)
+    marked = np.zeros(bs * bulk.row_map.size_global, dtype=bool)
     marked[dirichlet] = True
     keep = (rows == cols) | ~(marked[rows] | marked[cols])
     kept_per_row = np.bincount(row[keep], minlength=bs * n_blocks)

@@ -126,6 +126,7 @@ class ContactOperator(FrictionMixin):
             integration, pairs.PAIR_SKIN * s.mean_edge if integration == "area" else 0.0
         )
         self._pattern_keys: np.ndarray | None = None  # global couplings of the matrix pattern
+        self._bulk: assembly.BulkPattern | None = None  # the bulk form's, for the rebuilds
         self._held_keys: np.ndarray | None = None  # the same in the held numbering
         self._held_transposed = np.empty(0, dtype=INDEX)  # where each has its transpose
         self._held_refreshes = -1  # the halo build they were made for
@@ -475,18 +476,16 @@ class ContactOperator(FrictionMixin):
                 nonzeros (smaller factors; docs/operator.md). Assemble such a matrix with these
                 conditions only: a nonzero in a Dirichlet row or column raises.
         """
-        self._pattern_keys = pairs.pattern_keys(self.surface, self.integration, self.margin)
-        self._pattern_keys = self._with_friction_keys(self._pattern_keys)
+        keys = pairs.pattern_keys(self.surface, self.integration, self.margin, self.pair_search)
+        keys = self._pattern_keys = self._with_friction_keys(keys)
         self._held_keys = None
-        self._cache.pop("pattern_missing", None)
-        self._cache.pop("positions", None)
-        self._cache.pop("summed_hess", None)  # its blocks are those of the old pattern
+        for stale in ("pattern_missing", "positions", "summed_hess"):  # (the old pattern's)
+            self._cache.pop(stale, None)
+        self._bulk = assembly.BulkPattern.of(a, self.num_vertices, self._bulk)  # the mesh stays
         dirichlet = None
         if bcs is not None:
             dirichlet = assembly.global_dirichlet_dofs(self.comm, self.u.function_space, bcs)
-        return assembly.create_matrix(
-            self.comm, a, self._pattern_keys, self.num_vertices, dirichlet
-        )
+        return assembly.create_matrix(self.comm, self._bulk, keys, self.num_vertices, dirichlet)
 
     # -- augmented Lagrangian (nodal contact pressures; driver: fenics_matdepth.augmented) ---
 
