@@ -39,6 +39,7 @@ import ufl
 from fenics_matdepth._bulk import everywhere_numbered
 from fenics_matdepth._mpi import positions, summed
 from fenics_matdepth.contact import evaluation, pairs
+from fenics_matdepth.contact.kernels.drivers import intersecting
 from fenics_matdepth.geometry.intersect import near_pairs
 
 __all__ = ["PatchAssembly", "PatchModel"]
@@ -230,6 +231,11 @@ class PatchModel:
         u.x.scatter_forward()
 
     def _contact(self, want_grad: bool, want_hess: bool) -> tuple:
+        """Which patch pairs meet at ``u`` (an index; with area integration those whose
+        triangle meets the tetrahedron, the operator's own test, else all) and the pair
+        kernel's (energies, gradients, Hessians) of those. The kernel gives the others no
+        energy, and they are most of a patch's pairs (on the knee's last three steps 1,000 to
+        3,500 of 1,200 to 4,000): the kernel on them took half of the patches' contact time."""
         contact = self.owner.contact
         s = contact.surface
         shift = s.pull(self.owner.u.x.array[: 3 * self.owner.n_owned].reshape(-1, 3))
@@ -237,8 +243,11 @@ class PatchModel:
             x=s.X + shift, kernel_depth=s.kernel_depth, tri=s.tri, kernel_tets=s.kernel_tets,
             weight=s.weight, nodes=s.nodes, global_vertex=s.global_vertex,
         )  # fmt: skip
-        return evaluation.pair_arrays(
-            current, contact.integration, self.pair_a, self.pair_k, contact.penalty,
+        hit = np.arange(self.pair_a.size)
+        if contact.integration == "area":
+            hit = intersecting(current.x, s.tri, s.kernel_tets, self.pair_a, self.pair_k)
+        return (hit,) + evaluation.pair_arrays(
+            current, contact.integration, self.pair_a[hit], self.pair_k[hit], contact.penalty,
             contact.pressure, contact.pressure_width, want_grad, want_hess,
         )  # fmt: skip
 
@@ -258,7 +267,10 @@ class PatchModel:
         if not (lowest > 0.0 and lowest > self.floor):
             return np.inf
         value = dolfinx.fem.assemble_scalar(self.energy_form)
-        value += float(np.sum(self._contact(False, False)[0]))
+        hit, energies, _, _ = self._contact(False, False)
+        every = np.zeros(self.pair_a.size)  # summed over every pair, as the kernel gave them
+        every[hit] = energies
+        value += float(np.sum(every))
         value = float(summed(owner.comm, [value])[0])
         return value if np.isfinite(value) else np.inf
 
@@ -267,8 +279,8 @@ class PatchModel:
         self._set(x)
         g = np.zeros(self.dofs.size)
         g[self.rows_at] = dolfinx.fem.assemble_vector(self.residual_form).array[self.rows]
-        energy, grad, _ = self._contact(True, False)
-        d, grad = self.pair_dofs[energy > 0.0], grad[energy > 0.0]  # the pairs in contact
+        hit, energy, grad, _ = self._contact(True, False)
+        d, grad = self.pair_dofs[hit[energy > 0.0]], grad[energy > 0.0]  # the pairs in contact
         keep = d >= 0
         np.add.at(g, d[keep], grad[keep])
         return summed(self.owner.comm, g)
@@ -281,8 +293,8 @@ class PatchModel:
         K = np.zeros((self.dofs.size, self.dofs.size))
         local = self.matrix.to_scipy(ghosted=True).tocsr()[self.rows][:, self.rows]
         K[np.ix_(self.rows_at, self.rows_at)] = local.toarray()
-        energy, _, hess = self._contact(True, True)
-        d, hess = self.pair_dofs[energy > 0.0], hess[energy > 0.0]  # the pairs in contact
+        hit, energy, _, hess = self._contact(True, True)
+        d, hess = self.pair_dofs[hit[energy > 0.0]], hess[energy > 0.0]  # the pairs in contact
         keep = (d[:, :, None] >= 0) & (d[:, None, :] >= 0)
         rows = np.broadcast_to(d[:, :, None], hess.shape)[keep]
         cols = np.broadcast_to(d[:, None, :], hess.shape)[keep]

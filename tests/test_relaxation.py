@@ -187,6 +187,10 @@ def test_a_patch_is_the_whole_problem_on_its_dofs(comm):
         assert np.abs(gradient).max() > 1e-3
         scale = np.abs(gradient).max()
         assert np.allclose(gradient, model.values(F), rtol=1e-10, atol=1e-12 * scale)
+        # the kernel ran on the pairs that meet only, and the patch holds others too
+        meet = model._contact(False, False)[0].size
+        mesh_comm = V.mesh.comm
+        assert mesh_comm.allreduce(meet) > 0 and mesh_comm.allreduce(model.pair_a.size - meet) > 0
         problem.assembler.set_state(x)
         A = problem.assembler.matrix
         problem.assembler.jacobian(A)
