@@ -26,7 +26,27 @@ import ufl
 from fenics_matdepth._compat import integral_domains
 from fenics_matdepth._constants import INDEX
 
-__all__ = ["BulkMatrix", "csr_entries", "everywhere_numbered", "fixed_cells", "without_cells"]
+__all__ = [
+    "BulkMatrix",
+    "csr_blocks",
+    "csr_entries",
+    "everywhere_numbered",
+    "fixed_cells",
+    "without_cells",
+]
+
+
+def csr_blocks(csr) -> tuple[np.ndarray, np.ndarray]:
+    """The owned block rows' blocks of a DOLFINx ``MatrixCSR``, in its order (by row, columns
+    in block order within a row): each block's process-local block row and global block
+    column."""
+    row_map, col_map = csr.index_map(0), csr.index_map(1)
+    n_blocks = row_map.size_local
+    indptr = np.asarray(csr.indptr[: n_blocks + 1], dtype=INDEX)
+    n_cols = col_map.size_local + col_map.num_ghosts
+    global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
+    block_row = np.repeat(np.arange(n_blocks, dtype=INDEX), np.diff(indptr))
+    return block_row, global_block[np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)]
 
 
 def csr_entries(csr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -39,17 +59,11 @@ def csr_entries(csr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         column.
     """
     bs = csr.block_size[0]
-    row_map, col_map = csr.index_map(0), csr.index_map(1)
-    n_blocks = row_map.size_local
-    indptr = np.asarray(csr.indptr[: n_blocks + 1], dtype=INDEX)
-    block_cols = np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)
-    n_cols = col_map.size_local + col_map.num_ghosts
-    global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
     # MatrixCSR stores bs x bs blocks row-major: entry (r, c) of block k is data[k bs^2 + r bs
     # + c]. The scalar rows are ordered (block row, r), each holding its blocks' entries
     # (block, c) in block order.
-    block_row = np.repeat(np.arange(n_blocks, dtype=INDEX), np.diff(indptr))
-    k = np.arange(block_cols.size, dtype=INDEX)
+    block_row, block_col = csr_blocks(csr)
+    k = np.arange(block_col.size, dtype=INDEX)
     r = np.arange(bs, dtype=INDEX)
     c = np.arange(bs, dtype=INDEX)
     data_index = (k[None, :, None] * bs * bs + r[:, None, None] * bs + c[None, None, :]).ravel()
@@ -57,7 +71,7 @@ def csr_entries(csr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         block_row[None, :, None] * bs + r[:, None, None], (bs, k.size, bs)
     ).ravel()
     col = np.broadcast_to(
-        bs * global_block[block_cols][None, :, None] + c[None, None, :], (bs, k.size, bs)
+        bs * block_col[None, :, None] + c[None, None, :], (bs, k.size, bs)
     ).ravel()
     order = np.argsort(row, kind="stable")
     return data_index[order], row[order], col[order]

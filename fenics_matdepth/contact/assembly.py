@@ -19,6 +19,7 @@ import dolfinx
 import numpy as np
 from numba import njit
 
+from fenics_matdepth._bulk import csr_blocks
 from fenics_matdepth._constants import FLOAT, INDEX
 from fenics_matdepth.contact.kernels.fastmath import FMA
 from fenics_matdepth.contact.surface import ContactSurface
@@ -480,22 +481,15 @@ class BulkPattern:
     def __init__(self, a: dolfinx.fem.Form, num_vertices: int):
         self.form = a
         csr = dolfinx.fem.create_matrix(a)
-        self.bs = csr.block_size[0]
+        self.bs = csr.block_size[0]  # the space's dofmap block size
         self.row_map = csr.index_map(0)
-        self.b0, b1 = self.row_map.local_range
-        self.n_blocks = b1 - self.b0
-        indptr = np.asarray(csr.indptr[: self.n_blocks + 1], dtype=INDEX)
-        col_map = csr.index_map(1)
-        n_cols = col_map.size_local + col_map.num_ghosts
-        global_block = col_map.local_to_global(np.arange(n_cols, dtype=np.int32)).astype(INDEX)
-        cols = global_block[np.asarray(csr.indices[: indptr[-1]], dtype=INDEX)]
-        rows = np.repeat(np.arange(self.b0, b1, dtype=INDEX), np.diff(indptr))
-        self.keys = np.unique(rows * num_vertices + cols)
+        self.b0, self.n_blocks = self.row_map.local_range[0], self.row_map.size_local
+        block_row, block_col = csr_blocks(csr)
+        self.keys = np.unique((block_row + self.b0) * num_vertices + block_col)
         # sizes and local-to-global map from the dofs' index map, as
         # dolfinx.fem.petsc.create_matrix sets them (so that its assemble_matrix can add to A)
         imap = a.function_spaces[0].dofmap.index_map
-        self.bs_space = a.function_spaces[0].dofmap.index_map_bs
-        self.size = (self.bs_space * imap.size_local, self.bs_space * imap.size_global)
+        self.size = (self.bs * imap.size_local, self.bs * imap.size_global)
         self.held = imap.local_to_global(
             np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
         ).astype(PETSc.IntType)
@@ -528,9 +522,9 @@ def create_matrix(
     # took 0.57 s at 172k cells)
     bulk = a if isinstance(a, BulkPattern) else BulkPattern(a, num_vertices)
     csr_ptr, cols = _pattern_csr(comm, bulk, keys, num_vertices, dirichlet)
-    lgmap = PETSc.LGMap().create(bulk.held, bsize=bulk.bs_space, comm=comm)
+    lgmap = PETSc.LGMap().create(bulk.held, bsize=bulk.bs, comm=comm)
     A = PETSc.Mat().create(comm=comm)
-    A.setSizes((bulk.size, bulk.size), bsize=bulk.bs_space)
+    A.setSizes((bulk.size, bulk.size), bsize=bulk.bs)
     A.setType(PETSc.Mat.Type.AIJ)
     A.setPreallocationCSR((csr_ptr.astype(PETSc.IntType), cols.astype(PETSc.IntType)))
     A.setLGMap(lgmap, lgmap)
