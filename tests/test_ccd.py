@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 
 from fenics_matdepth.geometry.ccd import (
+    STILL_REACH,
     edge_edge_time_of_impact,
     entry_fraction,
+    sweep_caps,
     vertex_triangle_time_of_impact,
 )
 
@@ -227,3 +229,89 @@ def test_entry_cap_bounds_the_depth_past_first_contact():
     b = np.array([[0.0, -1.0, 1.0], [0.0, 1.0, 1.0]])
     cap = entry_fraction(a, b, a, b - [0.0, 0.0, 2.0], entry, kind="edge_edge")[0]
     assert 0.5 < cap <= 0.505 + 1e-12, cap
+
+
+def _crumpled_sheets(rng, sheets=3, n=5, spacing=0.08):
+    """Triangulated unit square sheets (n x n squares, each cut in two), crumpled (by 0.05)
+    and stacked ``spacing`` apart: positions, triangles (outward by the right-hand rule), each
+    triangle's edges and the owner triangle of every edge and vertex (the first holding it),
+    as ``sweep_caps`` takes them."""
+    g = np.linspace(0.0, 1.0, n + 1)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    grid = np.stack((X.ravel(), Y.ravel(), np.zeros(X.size)), axis=1)
+    k = np.arange(n + 1) * (n + 1)
+    corner = (k[:-1, None] + np.arange(n)[None, :]).ravel()
+    cells = np.concatenate(
+        (
+            np.stack((corner, corner + n + 1, corner + 1), axis=1),
+            np.stack((corner + 1, corner + n + 1, corner + n + 2), axis=1),
+        )
+    )
+    x, tri = [], []
+    for s in range(sheets):
+        sheet = grid + [0.0, 0.0, spacing * s] + rng.normal(0.0, 0.05, grid.shape)
+        tri.append(cells + s * grid.shape[0])
+        x.append(sheet)
+    x, tri = np.concatenate(x), np.concatenate(tri).astype(np.int64)
+    return x, tri, *_sweep_topology(tri, x.shape[0])
+
+
+def _sweep_topology(tri, num_vertices):
+    """Each triangle's edges, the edges, and the owner triangle (the first holding it) of
+    every vertex and edge."""
+    sides = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
+    keys = sides[:, 0] * num_vertices + sides[:, 1]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    edges = np.ascontiguousarray(sides[first])
+    tri_edge = np.ascontiguousarray(inverse.reshape(-1, 3))
+    edge_owner = first // 3
+    vertex_owner = np.full(num_vertices, tri.shape[0], dtype=np.int64)
+    np.minimum.at(vertex_owner, tri.ravel(), np.repeat(np.arange(tri.shape[0]), 3))
+    return tri_edge, edges, vertex_owner, edge_owner
+
+
+@pytest.mark.parametrize("exits", [False, True])
+def test_sweep_skips_only_pairs_that_cannot_reach_their_entry_tolerance(exits):
+    """Three crumpled sheets 0.08 apart (the entry tolerance is about 0.05), each vertex
+    moved by a random vector (half the steps each sheet at a scale of its own, from 0.01 to
+    10 entry tolerances; half 0.8 to 1.6 of them): the sweep that skips the pairs whose two
+    triangles' largest vertex moves sum to at most ``STILL_REACH`` entry tolerances gives the
+    same cap, the same count of capped pairs and the same smallest pair as the sweep of every
+    pair, step after step; and the steps skip many pairs and cap some. A triangle falling
+    head-on from just beyond the entry tolerance by just over twice it is capped, and swept:
+    a larger bound would skip it."""
+    rng = np.random.default_rng(11)
+    x0, tri, tri_edge, edges, vertex_owner, edge_owner = _crumpled_sheets(rng)
+    edge = np.linalg.norm(x0[tri[:, [1, 2, 0]]] - x0[tri], axis=2).mean(axis=1)
+    entry = np.ascontiguousarray(0.25 * edge)
+    m = tri.shape[0]
+    a, b = np.divmod(np.arange(m * m), m)
+    skipped = capped = 0
+    for k in range(24):
+        if k % 2:
+            # each sheet moves at a scale of its own, each vertex by half to all of it
+            sheet = 10.0 ** rng.uniform(-2.0, 1.0, 3)[np.arange(x0.shape[0]) * 3 // x0.shape[0]]
+            scale = entry.mean() * sheet[:, None] * rng.uniform(0.5, 1.0, (x0.shape[0], 1))
+        else:  # about the bound: 0.8 to 1.6 entry tolerances each
+            scale = entry.mean() * rng.uniform(0.8, 1.6, (x0.shape[0], 1))
+        step = rng.normal(size=x0.shape)
+        x1 = x0 + scale * step / np.linalg.norm(step, axis=1, keepdims=True)
+        args = (x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, a, b, exits)
+        every = sweep_caps(*args, skip_still=False)
+        assert sweep_caps(*args) == every
+        travel = np.linalg.norm(x1 - x0, axis=1)[tri].max(axis=1)
+        still = travel[a] + travel[b] <= STILL_REACH * np.minimum(entry[a], entry[b])
+        skipped += int(still[a != b].sum())
+        capped += every[1]
+    assert skipped > 0.1 * 24 * m * (m - 1), skipped
+    assert capped > 0, capped
+    # a triangle falling head-on onto another from 1.05 entry tolerances by 2.1: its lowest
+    # vertex 1.05 past first contact, capped (a bound above 2.1 would skip it)
+    e = 0.01
+    x0 = np.array([[-1, -1, 0], [2, -1, 0], [-1, 2, 0], [0, 0, 1.05 * e], [1, 0, 1], [0, 1, 1]])
+    x1 = x0 - np.outer(np.arange(6) >= 3, [0.0, 0.0, 2.1 * e])
+    tri = np.array([[0, 1, 2], [3, 5, 4]])
+    pair = np.array([0, 1]), np.array([1, 0])
+    args = (x0, x1, tri, *_sweep_topology(tri, 6), np.full(2, e), *pair, exits)
+    assert sweep_caps(*args) == sweep_caps(*args, skip_still=False)
+    assert sweep_caps(*args)[0] < 1.0
