@@ -21,6 +21,8 @@ import ufl
 from conftest import merged_mesh, neo_hookean_residual
 
 import fenics_matdepth as fm
+from fenics_matdepth.geometry.boxes import element_boxes
+from fenics_matdepth.geometry.bvh import AABBTree
 from fenics_matdepth.geometry.ccd import sweep_caps
 from fenics_matdepth.meshing import box_tetrahedra
 
@@ -147,8 +149,10 @@ def test_fast_cube_is_stopped_at_the_plate_by_a_truncated_step(speed):
 
 def test_step_fraction_is_the_same_on_any_number_of_ranks():
     """The cube moved 0.3 down through the plate in one step: the distributed query (owned
-    triangles against the swept-box tree, reduced over the ranks) equals a brute-force sweep
-    over all triangle pairs of the gathered boundary, and the cap lets the cube's bottom go
+    triangles, or without the exit cap the moving ones, against the swept-box tree, reduced
+    over the ranks) equals a brute-force sweep over all triangle pairs of the gathered
+    boundary in its cap, and a sweep of the pairs whose swept boxes overlap in its count of
+    capped pairs, and the cap lets the cube's bottom go
     just past the plate's top: (gap + entry) / 0.3 up to the advancement's tolerance."""
     comm = MPI.COMM_WORLD
     problem, _, _, _, cube = _cube_and_plate(comm, 0.0)
@@ -157,18 +161,26 @@ def test_step_fraction_is_the_same_on_any_number_of_ranks():
     u0 = np.zeros(3 * n)
     u1 = np.zeros((n, 3))
     u1[cube, 2] = -0.3
-    fraction = collisions.step_fraction(u0, u1.ravel())
     # brute force: every ordered pair of boundary triangles, on every rank alike
     m = collisions.num_triangles
     a, b = np.divmod(np.arange(m * m), m)
     x0 = collisions.positions(u0)
     x1 = collisions.positions(u1.ravel())
-    brute = sweep_caps(
-        x0, x1, collisions.tri, collisions.tri_edge, collisions.edges,
-        collisions.vertex_owner, collisions.edge_owner, collisions.entry, a, b,
-        collisions.exits_active,
-    )[0]  # fmt: skip
-    assert fraction == brute, (fraction, brute)
+    # the pairs whose swept boxes overlap (a pair passing within half an entry tolerance
+    # without touching may be capped too, and the query does not look for those)
+    points = np.vstack((x0, x1))
+    cells = np.hstack((collisions.tri, collisions.tri + x0.shape[0]))
+    overlap = AABBTree(points, cells).query_boxes(*element_boxes(points, cells))
+    # (without the exit cap the query takes the moving triangles, with it every owned one)
+    for exits in (True, False):
+        collisions.exits = exits
+        fraction = collisions.step_fraction(u0, u1.ravel())
+        args = (x0, x1, collisions.tri, collisions.tri_edge, collisions.edges,
+                collisions.vertex_owner, collisions.edge_owner, collisions.entry)  # fmt: skip
+        brute = sweep_caps(*args, a, b, exits, skip_still=False)[0]
+        assert fraction == brute, (exits, fraction, brute)
+        capped = sweep_caps(*args, *overlap, exits, skip_still=False)[1]
+        assert collisions.capped == capped, (exits, collisions.capped, capped)
     entry = collisions.entry.min()
     assert (GAP + 0.5 * entry) / 0.3 <= fraction <= (GAP + entry) / 0.3 + 1e-12, fraction
     assert collisions.capped > 0 and collisions.last_pair is not None

@@ -16,7 +16,9 @@ smallest cap is reduced over the ranks: the answer does not depend on the partit
 Broad phase: an AABB tree (`fenics_matdepth.geometry.bvh`) over the swept boxes of the
 boundary triangles (the box of a triangle's six positions at the step's start and end),
 refitted at each query and rebuilt when refits have degraded it; each owned triangle's swept
-box is queried against it.
+box is queried against it, or, without the exit cap, only the boxes of the triangles that move
+far enough to enter anything (``geometry.ccd.STILL_REACH``), each pair with a still triangle
+taken both ways round.
 """
 
 from __future__ import annotations
@@ -32,7 +34,13 @@ from fenics_matdepth._mpi import allgather_rows, positions
 from fenics_matdepth.contact.surface import ContactSurface
 from fenics_matdepth.geometry.boxes import element_boxes
 from fenics_matdepth.geometry.bvh import AABBTree
-from fenics_matdepth.geometry.ccd import PASS_THROUGH, sweep_caps, triangle_bodies
+from fenics_matdepth.geometry.ccd import (
+    PASS_THROUGH,
+    STILL_REACH,
+    sweep_caps,
+    triangle_bodies,
+    triangle_travel,
+)
 
 __all__ = [
     "ENTRY_FRACTION",
@@ -205,6 +213,34 @@ class ContinuousCollision:
         u0 = np.asarray(u0_owned)
         return bound * self.step_fraction(u0, u0 + bound * (np.asarray(u1_owned) - u0))
 
+    def _swept_pairs(
+        self, points: np.ndarray, x0: np.ndarray, x1: np.ndarray, entry: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The ordered triangle pairs ``(a, b)``, ``a`` owned, whose swept boxes overlap and
+        which the sweep has to test. With the exit cap, all of them. Without it, those where
+        one of the two triangles has a vertex moving more than half ``STILL_REACH`` times the
+        smallest entry tolerance (for any other pair ``sweep_caps`` finds every entry cap 1):
+        the moving triangles' boxes are queried, and each pair with a still triangle is taken
+        both ways round. Where more triangles move than the rank owns, the owned ones are
+        queried instead."""
+        owned = self._owned_tri
+        if not self.exits_active:
+            reach = 0.5 * STILL_REACH * float(entry.min())
+            still = triangle_travel(x0, x1, self.tri) <= reach  # (NaN: moving)
+            moving = np.flatnonzero(~still)
+            if moving.size < owned.size:
+                lo, hi = element_boxes(points, self._swept_cells[moving])
+                qm, qb = self._tree.query_boxes(lo, hi)
+                qm = moving[qm]
+                back = still[qb]
+                a = np.concatenate((qm, qb[back]))
+                b = np.concatenate((qb, qm[back]))
+                mine = (a >= owned[0]) & (a <= owned[-1])
+                return a[mine], b[mine]
+        lo, hi = element_boxes(points, self._swept_cells[owned])
+        qa, qb = self._tree.query_boxes(lo, hi)
+        return owned[qa], qb
+
     def step_fraction(
         self, u0_owned: np.ndarray, u1_owned: np.ndarray, entry_scale: float = 1.0
     ) -> float:
@@ -234,12 +270,11 @@ class ContinuousCollision:
                 self._tree.refit(points)
                 if self._tree.needs_rebuild():
                     self._tree.rebuild(points)
-            lo, hi = element_boxes(points, self._swept_cells[self._owned_tri])
-            qa, qb = self._tree.query_boxes(lo, hi)
+            entry = self.entry if entry_scale == 1.0 else entry_scale * self.entry
+            pair_a, pair_b = self._swept_pairs(points, x0, x1, entry)
             best, capped, kind, i, j = sweep_caps(
                 x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
-                self.edge_owner, self.entry if entry_scale == 1.0 else entry_scale * self.entry,
-                self._owned_tri[qa], qb, self.exits_active, self._bodies,
+                self.edge_owner, entry, pair_a, pair_b, self.exits_active, self._bodies,
             )  # fmt: skip
             which = (int(kind), int(i), int(j))
         best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)

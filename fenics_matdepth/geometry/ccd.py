@@ -60,6 +60,7 @@ __all__ = [
     "exit_fraction",
     "sweep_caps",
     "triangle_bodies",
+    "triangle_travel",
     "vertex_triangle_time_of_impact",
 ]
 
@@ -248,7 +249,7 @@ def _primitive_cap(kind, x0, x1, i0, i1, i2, i3, blk0, blk1, xs, entry, max_step
 
 
 @njit(cache=True)
-def _triangle_travel(x0, x1, tri):
+def triangle_travel(x0, x1, tri):
     """The largest displacement of a vertex of each triangle from ``x0`` to ``x1`` (NaN where
     one is not finite)."""
     out = np.empty(tri.shape[0], dtype=x0.dtype)
@@ -301,7 +302,7 @@ def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, p
     best = 1.0
     capped = 0
     which = (-1, -1, -1)
-    travel = _triangle_travel(x0, x1, tri) if skip_still else np.empty(0, dtype=x0.dtype)
+    travel = triangle_travel(x0, x1, tri) if skip_still else np.empty(0, dtype=x0.dtype)
     for q in range(pair_a.shape[0]):
         a = pair_a[q]
         b = pair_b[q]
