@@ -20,7 +20,7 @@ import numpy as np
 
 from fenics_matdepth.geometry.boxes import element_boxes
 from fenics_matdepth.geometry.bvh import AABBTree
-from fenics_matdepth.geometry.ccd import sweep_caps, triangle_bodies
+from fenics_matdepth.geometry.ccd import sweep_caps, sweep_topology, triangle_bodies
 from fenics_matdepth.meshing import box_tetrahedra
 
 
@@ -56,14 +56,7 @@ def main(n: int) -> None:
     x1_ = x0 + 1e-3 * rng.normal(size=x0.shape)
     x1_[x0[:, 2] > 0.105, 2] -= 0.02
     nb = x0.shape[0]
-    sides = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
-    _, first, inverse = np.unique(sides[:, 0] * nb + sides[:, 1], return_index=True,
-                                  return_inverse=True)  # fmt: skip
-    edges = np.ascontiguousarray(sides[first])
-    tri_edge = np.ascontiguousarray(inverse.reshape(-1, 3).astype(np.int64))
-    edge_owner = (first // 3).astype(np.int64)
-    vertex_owner = np.full(nb, tri.shape[0], dtype=np.int64)
-    np.minimum.at(vertex_owner, tri.ravel(), np.repeat(np.arange(tri.shape[0]), 3))
+    tri_edge, edges, vertex_owner, edge_owner = sweep_topology(tri, nb)
     entry = np.full(tri.shape[0], 0.25 / n)
     cells6 = np.ascontiguousarray(np.hstack((tri, tri + nb)))
     points = np.vstack((x0, x1_))

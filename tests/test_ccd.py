@@ -17,6 +17,7 @@ from fenics_matdepth.geometry.ccd import (
     edge_edge_time_of_impact,
     entry_fraction,
     sweep_caps,
+    sweep_topology,
     vertex_triangle_time_of_impact,
 )
 
@@ -253,21 +254,7 @@ def _crumpled_sheets(rng, sheets=3, n=5, spacing=0.08):
         tri.append(cells + s * grid.shape[0])
         x.append(sheet)
     x, tri = np.concatenate(x), np.concatenate(tri).astype(np.int64)
-    return x, tri, *_sweep_topology(tri, x.shape[0])
-
-
-def _sweep_topology(tri, num_vertices):
-    """Each triangle's edges, the edges, and the owner triangle (the first holding it) of
-    every vertex and edge."""
-    sides = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
-    keys = sides[:, 0] * num_vertices + sides[:, 1]
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    edges = np.ascontiguousarray(sides[first])
-    tri_edge = np.ascontiguousarray(inverse.reshape(-1, 3))
-    edge_owner = first // 3
-    vertex_owner = np.full(num_vertices, tri.shape[0], dtype=np.int64)
-    np.minimum.at(vertex_owner, tri.ravel(), np.repeat(np.arange(tri.shape[0]), 3))
-    return tri_edge, edges, vertex_owner, edge_owner
+    return x, tri, *sweep_topology(tri, x.shape[0])
 
 
 @pytest.mark.parametrize("exits", [False, True])
@@ -312,6 +299,6 @@ def test_sweep_skips_only_pairs_that_cannot_reach_their_entry_tolerance(exits):
     x1 = x0 - np.outer(np.arange(6) >= 3, [0.0, 0.0, 2.1 * e])
     tri = np.array([[0, 1, 2], [3, 5, 4]])
     pair = np.array([0, 1]), np.array([1, 0])
-    args = (x0, x1, tri, *_sweep_topology(tri, 6), np.full(2, e), *pair, exits)
+    args = (x0, x1, tri, *sweep_topology(tri, 6), np.full(2, e), *pair, exits)
     assert sweep_caps(*args) == sweep_caps(*args, skip_still=False)
     assert sweep_caps(*args)[0] < 1.0

@@ -19,6 +19,7 @@ from fenics_matdepth.geometry.ccd import (
     EXIT_MARGIN,
     exit_fraction,
     sweep_caps,
+    sweep_topology,
     triangle_bodies,
 )
 
@@ -152,14 +153,7 @@ def _two_layer_surface():
 
 
 def _sweep(x0, x1, tri, exits=True, entry=0.01, pairs=None, bodies=None):
-    sides = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
-    keys = sides[:, 0] * x0.shape[0] + sides[:, 1]
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    edges = sides[first]
-    tri_edge = inverse.reshape(-1, 3).astype(np.int64)
-    edge_owner = (first // 3).astype(np.int64)
-    vertex_owner = np.full(x0.shape[0], tri.shape[0], dtype=np.int64)
-    np.minimum.at(vertex_owner, tri.ravel(), np.repeat(np.arange(tri.shape[0]), 3))
+    tri_edge, edges, vertex_owner, edge_owner = sweep_topology(tri, x0.shape[0])
     entry = np.full(tri.shape[0], entry)
     if pairs is None:
         pa, pb = np.array([0, 0, 1, 2], dtype=np.int64), np.array([1, 2, 0, 0], dtype=np.int64)

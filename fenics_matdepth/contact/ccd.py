@@ -38,6 +38,7 @@ from fenics_matdepth.geometry.ccd import (
     PASS_THROUGH,
     STILL_REACH,
     sweep_caps,
+    sweep_topology,
     triangle_bodies,
     triangle_travel,
 )
@@ -150,20 +151,10 @@ class ContinuousCollision:
 
     def _edges_and_owners(self) -> None:
         """Boundary edges, each triangle's edges, and the owner triangle of each edge and
-        vertex (the first triangle holding it), which tests its pairs."""
-        tri = self.tri
-        m = tri.shape[0]
-        sides = np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2)
-        sides = np.sort(sides, axis=1)
-        nb = max(self.vertices.size, 1)
-        keys = sides[:, 0] * nb + sides[:, 1]
-        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        self.edges = np.ascontiguousarray(sides[first])
-        self.tri_edge = np.ascontiguousarray(inverse.reshape(m, 3).astype(INDEX))
-        self.edge_owner = (first // 3).astype(INDEX)
-        owner = np.full(self.vertices.size, m, dtype=INDEX)
-        np.minimum.at(owner, tri.ravel(), np.repeat(np.arange(m, dtype=INDEX), 3))
-        self.vertex_owner = owner
+        vertex (:func:`~fenics_matdepth.geometry.ccd.sweep_topology`)."""
+        self.tri_edge, self.edges, self.vertex_owner, self.edge_owner = sweep_topology(
+            self.tri, self.vertices.size
+        )
 
     @property
     def exits_active(self) -> bool:

@@ -59,6 +59,7 @@ __all__ = [
     "entry_fraction",
     "exit_fraction",
     "sweep_caps",
+    "sweep_topology",
     "triangle_bodies",
     "triangle_travel",
     "vertex_triangle_time_of_impact",
@@ -457,6 +458,22 @@ def entry_fraction(
         raise ValueError("entry tolerances must be > 0")
     code = VERTEX_TRIANGLE if n_first == 1 else EDGE_EDGE
     return _pairs(code, x0, x1, True, entry, 0.0, 1.0, MAX_ADVANCES)
+
+
+def sweep_topology(tri: np.ndarray, num_vertices: int) -> tuple[np.ndarray, ...]:
+    """The edges :func:`sweep_caps` takes for the triangles ``tri`` over ``num_vertices``
+    vertices: ``(tri_edge, edges, vertex_owner, edge_owner)``, each triangle's three edges, the
+    edges (sorted vertex pairs), and the owner triangle (the first holding it, which tests its
+    pairs) of each vertex and edge (``len(tri)`` for a vertex of no triangle)."""
+    m = tri.shape[0]
+    sides = np.sort(np.stack((tri, tri[:, [1, 2, 0]]), axis=2).reshape(-1, 2), axis=1)
+    keys = sides[:, 0] * max(num_vertices, 1) + sides[:, 1]
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    edges = np.ascontiguousarray(sides[first])
+    tri_edge = np.ascontiguousarray(inverse.reshape(m, 3).astype(INDEX))
+    vertex_owner = np.full(num_vertices, m, dtype=INDEX)
+    np.minimum.at(vertex_owner, tri.ravel(), np.repeat(np.arange(m, dtype=INDEX), 3))
+    return tri_edge, edges, vertex_owner, (first // 3).astype(INDEX)
 
 
 def sweep_caps(
