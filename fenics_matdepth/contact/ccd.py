@@ -205,7 +205,7 @@ class ContinuousCollision:
         return bound * self.step_fraction(u0, u0 + bound * (np.asarray(u1_owned) - u0))
 
     def _swept_pairs(
-        self, points: np.ndarray, x0: np.ndarray, x1: np.ndarray, entry: np.ndarray
+        self, points: np.ndarray, travel: np.ndarray, entry: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """The ordered triangle pairs ``(a, b)``, ``a`` owned, whose swept boxes overlap and
         which the sweep has to test. With the exit cap, all of them. Without it, those where
@@ -213,11 +213,11 @@ class ContinuousCollision:
         smallest entry tolerance (for any other pair ``sweep_caps`` finds every entry cap 1):
         the moving triangles' boxes are queried, and each pair with a still triangle is taken
         both ways round. Where more triangles move than the rank owns, the owned ones are
-        queried instead."""
+        queried instead. ``travel``: :func:`triangle_travel` of the step."""
         owned = self._owned_tri
         if not self.exits_active:
             reach = 0.5 * STILL_REACH * float(entry.min())
-            still = triangle_travel(x0, x1, self.tri) <= reach  # (NaN: moving)
+            still = travel <= reach  # (NaN: moving)
             moving = np.flatnonzero(~still)
             if moving.size < owned.size:
                 lo, hi = element_boxes(points, self._swept_cells[moving])
@@ -262,10 +262,12 @@ class ContinuousCollision:
                 if self._tree.needs_rebuild():
                     self._tree.rebuild(points)
             entry = self.entry if entry_scale == 1.0 else entry_scale * self.entry
-            pair_a, pair_b = self._swept_pairs(points, x0, x1, entry)
+            travel = triangle_travel(x0, x1, self.tri)
+            pair_a, pair_b = self._swept_pairs(points, travel, entry)
             best, capped, kind, i, j = sweep_caps(
                 x0, x1, self.tri, self.tri_edge, self.edges, self.vertex_owner,
                 self.edge_owner, entry, pair_a, pair_b, self.exits_active, self._bodies,
+                travel=travel,
             )  # fmt: skip
             which = (int(kind), int(i), int(j))
         best_all, rank = self.comm.allreduce((float(best), self.comm.rank), op=MPI.MINLOC)

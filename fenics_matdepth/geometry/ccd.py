@@ -272,7 +272,7 @@ def triangle_travel(x0, x1, tri):
 
 @njit(cache=True)
 def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, pair_a, pair_b,
-                max_steps, exits, tri_body, body_start, body_tris, skip_still):  # fmt: skip
+                max_steps, exits, tri_body, body_start, body_tris, travel):  # fmt: skip
     """The smallest entry cap over the primitive pairs of the triangle pairs (a, b).
 
     Each vertex is tested against triangle a from its owner triangle b only, each edge pair
@@ -284,9 +284,10 @@ def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, p
     of a's body, given as the CSR ``body_start``, ``body_tris`` of the triangles of each body
     ``tri_body``), otherwise not tested. Pairs sharing a vertex are not tested.
 
-    With ``skip_still``, a pair whose motion bound cannot carry it past its entry tolerance
-    is not swept for entries: its primitives' relative displacement is at most the sum
-    ``T_a + T_b`` of the two triangles' largest vertex displacements, and where that is at most
+    Given ``travel`` (:func:`triangle_travel`; empty: every pair swept), a pair whose motion
+    bound cannot carry it past its entry tolerance is not swept for entries: its primitives'
+    relative displacement is at most the sum ``T_a + T_b`` of the two triangles' largest
+    vertex displacements, and where that is at most
     ``STILL_REACH`` times ``e`` every entry cap of the pair is 1 (see ``STILL_REACH``). The
     result is the same, pair for pair; the exit caps are swept as before.
 
@@ -303,7 +304,7 @@ def _sweep_caps(x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, p
     best = 1.0
     capped = 0
     which = (-1, -1, -1)
-    travel = triangle_travel(x0, x1, tri) if skip_still else np.empty(0, dtype=x0.dtype)
+    skip_still = travel.size > 0
     for q in range(pair_a.shape[0]):
         a = pair_a[q]
         b = pair_b[q]
@@ -478,16 +479,21 @@ def sweep_topology(tri: np.ndarray, num_vertices: int) -> tuple[np.ndarray, ...]
 
 def sweep_caps(
     x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry, pair_a, pair_b, exits=True,
-    bodies=None, skip_still=True,
+    bodies=None, skip_still=True, travel=None,
 ):  # fmt: skip
     """Smallest entry cap over the primitive pairs of the triangle pairs (``_sweep_caps``);
     with ``exits``, also the exit caps of vertices leaving a body through its far side
     (``bodies``: :func:`triangle_bodies` of ``tri``, computed when None). ``skip_still``: the
     pairs whose vertices cannot move their entry tolerance are not swept for entries (the
-    same result, faster; False sweeps every pair, as a reference)."""
+    same result, faster; False sweeps every pair, as a reference), from ``travel``
+    (:func:`triangle_travel` of the step, computed when None)."""
     tri_body, body_start, body_tris = triangle_bodies(tri) if bodies is None else bodies
+    if not skip_still:
+        travel = np.empty(0, dtype=x0.dtype)
+    elif travel is None:
+        travel = triangle_travel(x0, x1, tri)
     return _sweep_caps(
         x0, x1, tri, tri_edge, edges, vertex_owner, edge_owner, entry,
         np.asarray(pair_a, dtype=INDEX), np.asarray(pair_b, dtype=INDEX), MAX_ADVANCES,
-        bool(exits), tri_body, body_start, body_tris, bool(skip_still),
+        bool(exits), tri_body, body_start, body_tris, travel,
     )  # fmt: skip
